@@ -1,0 +1,603 @@
+"""The robot description: one frozen dataclass tree per robot, loaded from YAML.
+
+This module is the only place that parses robot geometry. The simulator builds its
+bodies from a :class:`RobotDescription`, the estimators build their models from it
+and the hardware driver maps topics to cables and rods with it.
+
+Conventions: SI units, world frame z up. A rod's ``length`` is the distance between
+its two endcap (node) centres; its overall length is ``length + 2 * endcap_radius``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+__all__ = [
+    "PRESETS",
+    "CameraConfig",
+    "Cable",
+    "CableLengthConfig",
+    "ContactConfig",
+    "DescriptionError",
+    "EncoderConfig",
+    "Ground",
+    "ImuConfig",
+    "Motor",
+    "Node",
+    "RobotDescription",
+    "Rod",
+    "SensorSuite",
+    "UwbConfig",
+    "load_robot",
+]
+
+PRESETS = ("three_bar", "three_bar_large", "superball")
+
+# A rod whose nodes are placed further from its length than this cannot be assembled.
+_ASSEMBLY_TOLERANCE = 0.01  # relative
+
+
+class DescriptionError(ValueError):
+    """A robot description is malformed; the message names the file and the field."""
+
+
+@dataclass(frozen=True)
+class Node:
+    name: str
+    position: tuple[float, float, float]
+    """Initial position (m) in the resting pose the robot is built in."""
+
+
+@dataclass(frozen=True)
+class Rod:
+    name: str
+    nodes: tuple[int, int]
+    length: float
+    """Distance between the endcap centres (m)."""
+    radius: float
+    endcap_radius: float
+    mass: float
+    color: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class Motor:
+    min_rest_length: float
+    max_rest_length: float
+    max_speed: float
+    """Largest rate of change of the rest length (m/s)."""
+
+
+@dataclass(frozen=True)
+class Cable:
+    name: str
+    nodes: tuple[int, int]
+    stiffness: float
+    """N/m."""
+    damping: float
+    """N s/m."""
+    rest_length: float
+    """Initial (and, for passive cables, fixed) rest length (m)."""
+    actuated: bool
+    motor: Motor | None
+
+
+@dataclass(frozen=True)
+class Ground:
+    lateral_friction: float
+    rolling_friction: float
+    restitution: float
+
+
+@dataclass(frozen=True)
+class ImuConfig:
+    rate: float
+    mount: str
+    """Where each rod carries its IMU: ``rod_centre``."""
+    accel_noise: float
+    """Accelerometer white noise, standard deviation (m/s^2)."""
+    gyro_noise: float
+    """Gyro white noise, standard deviation (rad/s)."""
+    accel_bias: float
+    """Standard deviation of each accelerometer axis' constant bias (m/s^2)."""
+    gyro_bias: float
+    mag_noise: float
+    magnetic_field: tuple[float, float, float]
+    """Earth field in the world frame (gauss)."""
+    ahrs_gain: float
+
+
+@dataclass(frozen=True)
+class EncoderConfig:
+    rate: float
+    resolution: float
+    """Quantisation step of the measured rest length (m)."""
+
+
+@dataclass(frozen=True)
+class CableLengthConfig:
+    rate: float
+    noise: float
+    """Standard deviation (m) of a taut cable's length reading."""
+    slack_bias: float
+    """Extra error (m) of a slack cable: the sensor buckles and reads long."""
+
+
+@dataclass(frozen=True)
+class UwbConfig:
+    rate: float
+    """Broadcast rounds per second."""
+    packet_spacing: float
+    """Time between two modules' packets in a round (s)."""
+    module_offset: float
+    """Distance of each ranging module from its endcap centre, toward the rod centre (m)."""
+    timestamp_noise: float
+    """Standard deviation of each DW1000 time stamp (s)."""
+    clock_drift_ppm: float
+    offset_mean: float
+    """Mean of the per-pair ranging offsets o_ij (m), papers/000 eq. 6-7."""
+    offset_std: float
+    reject_fraction: tuple[float, float]
+    """Range of the share of packets rejected as non-line-of-sight, drawn per episode."""
+    anchors: tuple[tuple[float, float, float], ...]
+
+
+@dataclass(frozen=True)
+class ContactConfig:
+    rate: float
+    threshold: float
+    """Endcap-ground gap (m) under which an endcap counts as in contact."""
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    position: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float]
+    width: int
+    height: int
+    vertical_fov: float
+    """Degrees."""
+    near: float
+    far: float
+    rate: float
+    depth_noise: float
+    """Depth noise standard deviation at 1 m (m)."""
+    depth_noise_quadratic: float
+    """Depth noise growth with the square of the distance (m per m^2)."""
+
+    @property
+    def intrinsics(self) -> NDArray[np.float64]:
+        """Pinhole camera matrix K (3, 3), in pixels."""
+        fy = 0.5 * self.height / np.tan(0.5 * np.radians(self.vertical_fov))
+        return np.array(
+            [[fy, 0.0, 0.5 * self.width], [0.0, fy, 0.5 * self.height], [0.0, 0.0, 1.0]]
+        )
+
+
+@dataclass(frozen=True)
+class SensorSuite:
+    imu: ImuConfig
+    encoder: EncoderConfig
+    cable_length: CableLengthConfig
+    uwb: UwbConfig
+    contact: ContactConfig
+    camera: CameraConfig
+
+
+@dataclass(frozen=True)
+class RobotDescription:
+    name: str
+    gravity: float
+    ground: Ground
+    nodes: tuple[Node, ...]
+    rods: tuple[Rod, ...]
+    cables: tuple[Cable, ...]
+    sensors: SensorSuite
+    source: str = field(default="", compare=False)
+    """The file the description was read from."""
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.nodes)
+
+    @property
+    def n_rods(self) -> int:
+        return len(self.rods)
+
+    @property
+    def n_cables(self) -> int:
+        return len(self.cables)
+
+    @cached_property
+    def actuated(self) -> NDArray[np.intp]:
+        """Indices of the actuated cables, (m,)."""
+        return np.array([k for k, c in enumerate(self.cables) if c.actuated], dtype=np.intp)
+
+    @property
+    def n_actuated(self) -> int:
+        return len(self.actuated)
+
+    @cached_property
+    def cable_nodes(self) -> NDArray[np.intp]:
+        """Node index pairs of the cables, (n_cables, 2)."""
+        return np.array([c.nodes for c in self.cables], dtype=np.intp).reshape(-1, 2)
+
+    @cached_property
+    def rod_nodes(self) -> NDArray[np.intp]:
+        """Node index pairs of the rods, (n_rods, 2)."""
+        return np.array([r.nodes for r in self.rods], dtype=np.intp).reshape(-1, 2)
+
+    @cached_property
+    def node_rod(self) -> NDArray[np.intp]:
+        """The rod each node belongs to, (n_nodes,)."""
+        out = np.empty(self.n_nodes, dtype=np.intp)
+        for k, rod in enumerate(self.rods):
+            out[list(rod.nodes)] = k
+        return out
+
+    @cached_property
+    def node_masses(self) -> NDArray[np.float64]:
+        """Point masses at the nodes (kg), half a rod each, (n_nodes,)."""
+        out = np.zeros(self.n_nodes)
+        for rod in self.rods:
+            out[list(rod.nodes)] += 0.5 * rod.mass
+        return out
+
+    @property
+    def total_mass(self) -> float:
+        return float(sum(r.mass for r in self.rods))
+
+    @cached_property
+    def initial_positions(self) -> NDArray[np.float64]:
+        """Node positions of the resting pose (m), (n_nodes, 3)."""
+        return np.array([n.position for n in self.nodes], dtype=np.float64)
+
+    @cached_property
+    def rest_lengths(self) -> NDArray[np.float64]:
+        """Initial rest lengths of all cables (m), (n_cables,)."""
+        return np.array([c.rest_length for c in self.cables], dtype=np.float64)
+
+    @cached_property
+    def motor_limits(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Minimum, maximum rest length (m) and speed (m/s) of the actuated cables, each (m,)."""
+        motors = [c.motor for c in self.cables if c.motor is not None]
+        return (
+            np.array([m.min_rest_length for m in motors]),
+            np.array([m.max_rest_length for m in motors]),
+            np.array([m.max_speed for m in motors]),
+        )
+
+    @property
+    def anchors(self) -> NDArray[np.float64]:
+        """Fixed UWB anchor positions (m), (n_anchors, 3)."""
+        return np.array(self.sensors.uwb.anchors, dtype=np.float64).reshape(-1, 3)
+
+    @property
+    def characteristic_length(self) -> float:
+        """Mean rod length (m): the scale of the robot."""
+        return float(np.mean([r.length for r in self.rods]))
+
+
+# ----------------------------------------------------------------------------- loading
+
+
+class _Reader:
+    """Walks a parsed YAML document and reports errors by file and field path."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, path: str, message: str) -> DescriptionError:
+        return DescriptionError(f"{self.source}: {path}: {message}")
+
+    def mapping(self, value: Any, path: str, keys: set[str]) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise self.fail(path, f"expected a mapping, got {type(value).__name__}")
+        missing = sorted(keys - value.keys())
+        if missing:
+            raise self.fail(f"{path}.{missing[0]}" if path else missing[0], "missing field")
+        unknown = sorted(set(value) - keys)
+        if unknown:
+            raise self.fail(f"{path}.{unknown[0]}" if path else unknown[0], "unknown field")
+        return value
+
+    def sequence(self, value: Any, path: str, min_len: int = 1) -> list[Any]:
+        if not isinstance(value, list):
+            raise self.fail(path, f"expected a list, got {type(value).__name__}")
+        if len(value) < min_len:
+            raise self.fail(path, f"expected at least {min_len} entries, got {len(value)}")
+        return value
+
+    def number(
+        self, value: Any, path: str, *, positive: bool = False, non_negative: bool = False
+    ) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(path, f"expected a number, got {value!r}")
+        x = float(value)
+        if not np.isfinite(x):
+            raise self.fail(path, f"must be finite, got {value!r}")
+        if positive and x <= 0.0:
+            raise self.fail(path, f"must be positive, got {value!r}")
+        if non_negative and x < 0.0:
+            raise self.fail(path, f"must not be negative, got {value!r}")
+        return x
+
+    def vector(self, value: Any, path: str, size: int, **kw: bool) -> tuple[float, ...]:
+        items = self.sequence(value, path)
+        if len(items) != size:
+            raise self.fail(path, f"expected {size} numbers, got {len(items)}")
+        return tuple(self.number(v, f"{path}[{i}]", **kw) for i, v in enumerate(items))
+
+    def string(self, value: Any, path: str) -> str:
+        if not isinstance(value, str) or not value:
+            raise self.fail(path, f"expected a non-empty string, got {value!r}")
+        return value
+
+    def boolean(self, value: Any, path: str) -> bool:
+        if not isinstance(value, bool):
+            raise self.fail(path, f"expected true or false, got {value!r}")
+        return value
+
+
+def _node_pair(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[int, int]:
+    names = r.sequence(value, path)
+    if len(names) != 2:
+        raise r.fail(path, f"expected two node names, got {len(names)}")
+    out = []
+    for i, name in enumerate(names):
+        r.string(name, f"{path}[{i}]")
+        if name not in index:
+            raise r.fail(f"{path}[{i}]", f"unknown node {name!r}")
+        out.append(index[name])
+    if out[0] == out[1]:
+        raise r.fail(path, f"both ends are node {names[0]!r}")
+    return out[0], out[1]
+
+
+def _sensors(r: _Reader, doc: Any) -> SensorSuite:
+    p = "sensors"
+    s = r.mapping(doc, p, {"imu", "encoder", "cable_length", "uwb", "contact", "camera"})
+    imu = r.mapping(
+        s["imu"],
+        f"{p}.imu",
+        {"rate", "mount", "accel_noise", "gyro_noise", "accel_bias", "gyro_bias", "mag_noise",
+         "magnetic_field", "ahrs_gain"},
+    )  # fmt: skip
+    if imu["mount"] != "rod_centre":
+        raise r.fail(f"{p}.imu.mount", f"only 'rod_centre' is supported, got {imu['mount']!r}")
+    q = f"{p}.imu"
+    imu_cfg = ImuConfig(
+        rate=r.number(imu["rate"], f"{q}.rate", positive=True),
+        mount=imu["mount"],
+        accel_noise=r.number(imu["accel_noise"], f"{q}.accel_noise", non_negative=True),
+        gyro_noise=r.number(imu["gyro_noise"], f"{q}.gyro_noise", non_negative=True),
+        accel_bias=r.number(imu["accel_bias"], f"{q}.accel_bias", non_negative=True),
+        gyro_bias=r.number(imu["gyro_bias"], f"{q}.gyro_bias", non_negative=True),
+        mag_noise=r.number(imu["mag_noise"], f"{q}.mag_noise", non_negative=True),
+        magnetic_field=r.vector(imu["magnetic_field"], f"{q}.magnetic_field", 3),  # type: ignore[arg-type]
+        ahrs_gain=r.number(imu["ahrs_gain"], f"{q}.ahrs_gain", positive=True),
+    )
+    enc = r.mapping(s["encoder"], f"{p}.encoder", {"rate", "resolution"})
+    enc_cfg = EncoderConfig(
+        rate=r.number(enc["rate"], f"{p}.encoder.rate", positive=True),
+        resolution=r.number(enc["resolution"], f"{p}.encoder.resolution", non_negative=True),
+    )
+    cl = r.mapping(s["cable_length"], f"{p}.cable_length", {"rate", "noise", "slack_bias"})
+    cl_cfg = CableLengthConfig(
+        rate=r.number(cl["rate"], f"{p}.cable_length.rate", positive=True),
+        noise=r.number(cl["noise"], f"{p}.cable_length.noise", non_negative=True),
+        slack_bias=r.number(cl["slack_bias"], f"{p}.cable_length.slack_bias", non_negative=True),
+    )
+    q = f"{p}.uwb"
+    uwb = r.mapping(
+        s["uwb"],
+        q,
+        {"rate", "packet_spacing", "module_offset", "timestamp_noise", "clock_drift_ppm",
+         "offset_mean", "offset_std", "reject_fraction", "anchors"},
+    )  # fmt: skip
+    reject = r.vector(uwb["reject_fraction"], f"{q}.reject_fraction", 2, non_negative=True)
+    if not reject[0] <= reject[1] < 1.0:
+        raise r.fail(f"{q}.reject_fraction", f"need 0 <= low <= high < 1, got {list(reject)}")
+    anchors = r.sequence(uwb["anchors"], f"{q}.anchors", min_len=0)
+    uwb_cfg = UwbConfig(
+        rate=r.number(uwb["rate"], f"{q}.rate", positive=True),
+        packet_spacing=r.number(uwb["packet_spacing"], f"{q}.packet_spacing", positive=True),
+        module_offset=r.number(uwb["module_offset"], f"{q}.module_offset", non_negative=True),
+        timestamp_noise=r.number(uwb["timestamp_noise"], f"{q}.timestamp_noise", non_negative=True),
+        clock_drift_ppm=r.number(uwb["clock_drift_ppm"], f"{q}.clock_drift_ppm", non_negative=True),
+        offset_mean=r.number(uwb["offset_mean"], f"{q}.offset_mean"),
+        offset_std=r.number(uwb["offset_std"], f"{q}.offset_std", non_negative=True),
+        reject_fraction=(reject[0], reject[1]),
+        anchors=tuple(
+            r.vector(a, f"{q}.anchors[{i}]", 3)  # type: ignore[misc]
+            for i, a in enumerate(anchors)
+        ),
+    )
+    if 1.0 / uwb_cfg.rate < uwb_cfg.packet_spacing:
+        raise r.fail(f"{q}.packet_spacing", "longer than one broadcast round")
+    ct = r.mapping(s["contact"], f"{p}.contact", {"rate", "threshold"})
+    ct_cfg = ContactConfig(
+        rate=r.number(ct["rate"], f"{p}.contact.rate", positive=True),
+        threshold=r.number(ct["threshold"], f"{p}.contact.threshold", non_negative=True),
+    )
+    q = f"{p}.camera"
+    cam = r.mapping(
+        s["camera"],
+        q,
+        {"position", "target", "up", "width", "height", "vertical_fov", "near", "far", "rate",
+         "depth_noise", "depth_noise_quadratic"},
+    )  # fmt: skip
+    for key in ("width", "height"):
+        if not isinstance(cam[key], int) or isinstance(cam[key], bool) or cam[key] <= 0:
+            raise r.fail(f"{q}.{key}", f"expected a positive integer, got {cam[key]!r}")
+    cam_cfg = CameraConfig(
+        position=r.vector(cam["position"], f"{q}.position", 3),  # type: ignore[arg-type]
+        target=r.vector(cam["target"], f"{q}.target", 3),  # type: ignore[arg-type]
+        up=r.vector(cam["up"], f"{q}.up", 3),  # type: ignore[arg-type]
+        width=cam["width"],
+        height=cam["height"],
+        vertical_fov=r.number(cam["vertical_fov"], f"{q}.vertical_fov", positive=True),
+        near=r.number(cam["near"], f"{q}.near", positive=True),
+        far=r.number(cam["far"], f"{q}.far", positive=True),
+        rate=r.number(cam["rate"], f"{q}.rate", positive=True),
+        depth_noise=r.number(cam["depth_noise"], f"{q}.depth_noise", non_negative=True),
+        depth_noise_quadratic=r.number(
+            cam["depth_noise_quadratic"], f"{q}.depth_noise_quadratic", non_negative=True
+        ),
+    )
+    if cam_cfg.far <= cam_cfg.near:
+        raise r.fail(f"{q}.far", "must be greater than near")
+    return SensorSuite(imu_cfg, enc_cfg, cl_cfg, uwb_cfg, ct_cfg, cam_cfg)
+
+
+def parse_robot(doc: Any, source: str) -> RobotDescription:
+    """Validate a parsed YAML document and build the description from it."""
+    r = _Reader(source)
+    top = r.mapping(doc, "", {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"})
+    g = r.mapping(top["ground"], "ground", {"lateral_friction", "rolling_friction", "restitution"})
+    ground = Ground(
+        lateral_friction=r.number(g["lateral_friction"], "ground.lateral_friction", non_negative=True),
+        rolling_friction=r.number(g["rolling_friction"], "ground.rolling_friction", non_negative=True),
+        restitution=r.number(g["restitution"], "ground.restitution", non_negative=True),
+    )
+
+    nodes: list[Node] = []
+    index: dict[str, int] = {}
+    for i, item in enumerate(r.sequence(top["nodes"], "nodes", min_len=2)):
+        n = r.mapping(item, f"nodes[{i}]", {"name", "position"})
+        name = r.string(n["name"], f"nodes[{i}].name")
+        if name in index:
+            raise r.fail(f"nodes[{i}].name", f"duplicate node name {name!r}")
+        index[name] = i
+        pos = r.vector(n["position"], f"nodes[{i}].position", 3)
+        nodes.append(Node(name, (pos[0], pos[1], pos[2])))
+    positions = np.array([n.position for n in nodes])
+
+    rods: list[Rod] = []
+    owner: dict[int, str] = {}
+    rod_keys = {"name", "nodes", "length", "radius", "endcap_radius", "mass", "color"}
+    for i, item in enumerate(r.sequence(top["rods"], "rods")):
+        p = f"rods[{i}]"
+        d = r.mapping(item, p, rod_keys)
+        name = r.string(d["name"], f"{p}.name")
+        pair = _node_pair(r, d["nodes"], f"{p}.nodes", index)
+        for k, node in enumerate(pair):
+            if node in owner:
+                raise r.fail(
+                    f"{p}.nodes[{k}]",
+                    f"rods cannot be assembled: node {nodes[node].name!r} already ends rod "
+                    f"{owner[node]!r}",
+                )
+            owner[node] = name
+        length = r.number(d["length"], f"{p}.length", positive=True)
+        gap = float(np.linalg.norm(positions[pair[1]] - positions[pair[0]]))
+        if abs(gap - length) > _ASSEMBLY_TOLERANCE * length:
+            raise r.fail(
+                f"{p}.length",
+                f"rods cannot be assembled: nodes {nodes[pair[0]].name!r} and "
+                f"{nodes[pair[1]].name!r} are {gap:.4f} m apart but the rod is {length:.4f} m long",
+            )
+        radius = r.number(d["radius"], f"{p}.radius", positive=True)
+        endcap = r.number(d["endcap_radius"], f"{p}.endcap_radius", positive=True)
+        if 2.0 * endcap >= length:
+            raise r.fail(f"{p}.endcap_radius", "endcaps overlap: twice the radius exceeds length")
+        color = r.vector(d["color"], f"{p}.color", 4, non_negative=True)
+        rods.append(
+            Rod(
+                name=name,
+                nodes=pair,
+                length=length,
+                radius=radius,
+                endcap_radius=endcap,
+                mass=r.number(d["mass"], f"{p}.mass", positive=True),
+                color=(color[0], color[1], color[2], color[3]),
+            )
+        )
+    loose = [nodes[k].name for k in range(len(nodes)) if k not in owner]
+    if loose:
+        raise r.fail("rods", f"rods cannot be assembled: node {loose[0]!r} ends no rod")
+
+    cables: list[Cable] = []
+    cable_keys = {"name", "nodes", "stiffness", "damping", "rest_length", "actuated"}
+    for i, item in enumerate(r.sequence(top["cables"], "cables")):
+        p = f"cables[{i}]"
+        if not isinstance(item, dict):
+            raise r.fail(p, f"expected a mapping, got {type(item).__name__}")
+        actuated = r.boolean(item.get("actuated", None), f"{p}.actuated") if "actuated" in item else None
+        if actuated is None:
+            raise r.fail(f"{p}.actuated", "missing field")
+        d = r.mapping(item, p, cable_keys | ({"motor"} if actuated else set()))
+        pair = _node_pair(r, d["nodes"], f"{p}.nodes", index)
+        if owner[pair[0]] == owner[pair[1]]:
+            raise r.fail(f"{p}.nodes", f"both ends are on rod {owner[pair[0]]!r}")
+        rest = r.number(d["rest_length"], f"{p}.rest_length", positive=True)
+        motor = None
+        if actuated:
+            m = r.mapping(d["motor"], f"{p}.motor", {"min_rest_length", "max_rest_length", "max_speed"})
+            lo = r.number(m["min_rest_length"], f"{p}.motor.min_rest_length", positive=True)
+            hi = r.number(m["max_rest_length"], f"{p}.motor.max_rest_length", positive=True)
+            if not lo <= rest <= hi:
+                raise r.fail(
+                    f"{p}.rest_length", f"{rest} lies outside the motor's range [{lo}, {hi}]"
+                )
+            motor = Motor(lo, hi, r.number(m["max_speed"], f"{p}.motor.max_speed", positive=True))
+        cables.append(
+            Cable(
+                name=r.string(d["name"], f"{p}.name"),
+                nodes=pair,
+                stiffness=r.number(d["stiffness"], f"{p}.stiffness", positive=True),
+                damping=r.number(d["damping"], f"{p}.damping", non_negative=True),
+                rest_length=rest,
+                actuated=actuated,
+                motor=motor,
+            )
+        )
+    if not any(c.actuated for c in cables):
+        raise r.fail("cables", "no cable is actuated")
+
+    return RobotDescription(
+        name=r.string(top["name"], "name"),
+        gravity=r.number(top["gravity"], "gravity", non_negative=True),
+        ground=ground,
+        nodes=tuple(nodes),
+        rods=tuple(rods),
+        cables=tuple(cables),
+        sensors=_sensors(r, top["sensors"]),
+        source=source,
+    )
+
+
+def load_robot(name_or_path: str | Path) -> RobotDescription:
+    """Load a preset by name (see :data:`PRESETS`) or a description from a YAML file.
+
+    Raises:
+        DescriptionError: the file is missing, not YAML, or malformed; the message names
+            the file and the field.
+    """
+    text: str
+    if isinstance(name_or_path, str) and name_or_path in PRESETS:
+        asset = resources.files("tensegrity_gym.model") / "assets" / f"{name_or_path}.yaml"
+        source = str(asset)
+        text = asset.read_text()
+    else:
+        path = Path(name_or_path)
+        source = str(path)
+        if not path.is_file():
+            raise DescriptionError(
+                f"{source}: no such file (presets are {', '.join(PRESETS)})"
+            )
+        text = path.read_text()
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise DescriptionError(f"{source}: not valid YAML: {err}") from err
+    return parse_robot(doc, source)

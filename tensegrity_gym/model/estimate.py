@@ -1,0 +1,36 @@
+"""What an estimator hands the task: the estimated state of the robot."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["Estimate"]
+
+
+@dataclass(frozen=True, slots=True)
+class Estimate:
+    t: float
+    node_positions: NDArray[np.float64]
+    """(n_nodes, 3) metres."""
+    node_velocities: NDArray[np.float64]
+    """(n_nodes, 3) m/s."""
+    com: NDArray[np.float64]
+    """Centre of mass, (3,)."""
+    rest_lengths: NDArray[np.float64]
+    """Latest measured rest lengths of the actuated cables (m), (m,)."""
+    covariance: NDArray[np.float64] | None = None
+    """State covariance where the method has one, (6 n_nodes, 6 n_nodes)."""
+    healthy: bool = True
+    """False while the estimator has lost track or has just been re-initialised."""
+    reinitialised: bool = False
+    """True on the update in which the estimator re-initialised itself."""
+
+    def is_finite(self) -> bool:
+        return bool(
+            np.all(np.isfinite(self.node_positions))
+            and np.all(np.isfinite(self.node_velocities))
+            and np.all(np.isfinite(self.com))
+        )

@@ -1,0 +1,79 @@
+"""Pure kinematics of a tensegrity: cable lengths, rod frames, centre of mass.
+
+Functions broadcast over leading batch dimensions, e.g. sigma points ``(S, n, 3)``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+__all__ = [
+    "center_of_mass",
+    "member_lengths",
+    "quaternion_rotate",
+    "rod_axes",
+    "rod_centres",
+    "rod_quaternion_from_axis",
+]
+
+
+def member_lengths(
+    node_positions: NDArray[np.float64], pairs: NDArray[np.intp]
+) -> NDArray[np.float64]:
+    """Distances between node pairs (m): positions (..., n, 3), pairs (m, 2) -> (..., m)."""
+    u = node_positions[..., pairs[:, 1], :] - node_positions[..., pairs[:, 0], :]
+    return np.asarray(np.sqrt(np.einsum("...i,...i->...", u, u)))
+
+
+def rod_centres(
+    node_positions: NDArray[np.float64], rod_nodes: NDArray[np.intp]
+) -> NDArray[np.float64]:
+    """Rod midpoints (m): (..., n, 3) -> (..., r, 3)."""
+    return np.asarray(
+        0.5 * (node_positions[..., rod_nodes[:, 0], :] + node_positions[..., rod_nodes[:, 1], :])
+    )
+
+
+def rod_axes(
+    node_positions: NDArray[np.float64], rod_nodes: NDArray[np.intp]
+) -> NDArray[np.float64]:
+    """Unit vectors from each rod's first node to its second: (..., n, 3) -> (..., r, 3)."""
+    u = node_positions[..., rod_nodes[:, 1], :] - node_positions[..., rod_nodes[:, 0], :]
+    return np.asarray(u / np.linalg.norm(u, axis=-1, keepdims=True))
+
+
+def center_of_mass(
+    node_positions: NDArray[np.float64], node_masses: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Mass-weighted mean of the nodes (m): (..., n, 3), (n,) -> (..., 3)."""
+    w = node_masses / node_masses.sum()
+    return np.asarray(np.einsum("...ni,n->...i", node_positions, w))
+
+
+def quaternion_rotate(q: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Rotate vectors v (..., 3) by unit quaternions q (..., 4) in (x, y, z, w) order."""
+    xyz, w = q[..., :3], q[..., 3:4]
+    t = 2.0 * np.cross(xyz, v)
+    return np.asarray(v + w * t + np.cross(xyz, t))
+
+
+def rod_quaternion_from_axis(axis: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The smallest rotation taking +z onto each unit axis (..., 3) -> (..., 4), (x, y, z, w).
+
+    Rods are symmetric about their axis, so this is the canonical 5-DoF orientation.
+    """
+    axis = np.asarray(axis, dtype=np.float64)
+    z = np.zeros_like(axis)
+    z[..., 2] = 1.0
+    xyz = np.cross(z, axis)
+    w = 1.0 + axis[..., 2:3]
+    q = np.concatenate([xyz, w], axis=-1)
+    # Antiparallel to +z: any half turn about a horizontal axis will do.
+    flip = w[..., 0] < 1e-9
+    q[flip] = np.array([1.0, 0.0, 0.0, 0.0])
+    return np.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True))

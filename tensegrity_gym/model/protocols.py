@@ -1,0 +1,93 @@
+"""The contracts between the env and its parts: backends and estimators."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.estimate import Estimate
+    from tensegrity_gym.model.samples import GroundTruth, Sample
+
+__all__ = ["Backend", "Estimator", "SensorCalibration", "StepResult"]
+
+
+@dataclass(frozen=True)
+class SensorCalibration:
+    """Per-robot calibration an estimator may use (what a lab would have measured).
+
+    ``uwb_offsets`` holds o_ij of papers/000 eq. 6-7 for every module pair, symmetric,
+    (n_modules, n_modules), module ids as in :class:`UwbRangeSample`.
+    """
+
+    uwb_offsets: NDArray[np.float64]
+    anchors: NDArray[np.float64]
+    """(n_anchors, 3) metres."""
+    camera_intrinsics: NDArray[np.float64]
+    """(3, 3) pixels."""
+    camera_pose: NDArray[np.float64]
+    """Camera to world transform, (4, 4); the camera looks along its +z axis."""
+
+
+@dataclass(frozen=True)
+class StepResult:
+    samples: Sequence[Sample]
+    """Everything the sensors produced during the control period, in time order."""
+    diverged: bool = False
+    """The backend's state became non-finite or absurd; the episode must end."""
+    info: dict[str, object] = field(default_factory=dict)
+
+
+@runtime_checkable
+class Backend(Protocol):
+    """Where samples come from: a simulation, a robot, or a log."""
+
+    description: RobotDescription
+    control_period: float
+    """Seconds of robot time one :meth:`step` covers."""
+
+    @property
+    def calibration(self) -> SensorCalibration: ...
+
+    def reset(self, rng: np.random.Generator) -> StepResult:
+        """Start an episode; return the samples of the settling period."""
+        ...
+
+    def step(self, targets: NDArray[np.float64]) -> StepResult:
+        """Command actuated cable rest-length targets (m), (m,); advance one period."""
+        ...
+
+    def ground_truth(self) -> GroundTruth | None:
+        """The true state where one exists (simulation, motion capture), else None."""
+        ...
+
+    def render(self, width: int, height: int) -> NDArray[np.uint8]:
+        """A view of the scene for people, (height, width, 3)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """Turns samples and commands into an :class:`Estimate`. Sees nothing else."""
+
+    needs_camera: bool
+    """True if the estimator uses RGB-D frames; the backend only renders when asked."""
+
+    def reset(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+        command: NDArray[np.float64],
+        rng: np.random.Generator,
+    ) -> Estimate: ...
+
+    def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate: ...

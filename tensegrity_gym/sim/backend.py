@@ -1,0 +1,319 @@
+"""The simulation backend: a PyBullet robot and its sensor suite behind :class:`Backend`."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from tensegrity_gym.model.kinematics import center_of_mass
+from tensegrity_gym.model.protocols import SensorCalibration, StepResult
+from tensegrity_gym.model.samples import GroundTruth
+from tensegrity_gym.sim.sensors import (
+    CableLengthModel,
+    CameraModel,
+    ContactModel,
+    EncoderModel,
+    ImuModel,
+    SensorSchedule,
+    UwbModel,
+)
+from tensegrity_gym.sim.world import PhysicsWorld
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.samples import Sample
+    from tensegrity_gym.sim.world import Snapshot
+
+__all__ = ["SimBackend", "settled_pose"]
+
+# A state whose nodes move faster than this, or leave this box, has blown up.
+_MAX_SPEED = 50.0  # m/s
+_MAX_EXTENT = 1.0e3  # m
+
+
+@lru_cache(maxsize=8)
+def settled_pose(
+    description: RobotDescription, time_step: float, settle_time: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Rod positions (r, 3) and quaternions (r, 4) of the robot at rest on the ground,
+    reached by letting the nominal shape settle; centred so the CoM is above the origin.
+
+    Deterministic, so it is computed once per description and shared.
+    """
+    world = PhysicsWorld(description, time_step)
+    try:
+        world.set_node_positions(description.initial_positions)
+        n = int(round(settle_time / time_step))
+        world.advance(n, [description.rest_lengths[k] for k in description.actuated], [False] * n)
+        pos, orn, _, _ = world.rod_states()
+    finally:
+        world.close()
+    positions = np.array(pos)
+    masses = np.array([r.mass for r in description.rods])
+    com = (positions * masses[:, None]).sum(axis=0) / masses.sum()
+    positions[:, :2] -= com[:2]
+    return positions, np.array(orn)
+
+
+def _yaw_quaternion(yaw: float) -> NDArray[np.float64]:
+    return np.array([0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
+
+
+def _quat_multiply(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Hamilton product a * b of (..., 4) quaternions in (x, y, z, w) order."""
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack(
+        [
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+            aw * bw - ax * bx - ay * by - az * bz,
+        ],
+        axis=-1,
+    )
+
+
+class SimBackend:
+    """A simulated tensegrity robot producing raw sensor samples.
+
+    Args:
+        description: the robot.
+        control_period: seconds per :meth:`step` (10 Hz control by default).
+        time_step: physics step (s); 1 kHz by default.
+        camera: render RGB-D frames for an estimator (costly; off unless asked).
+        gui: show PyBullet's window (``render_mode="human"``).
+        spawn_radius: the initial CoM is placed uniformly within this radius (m) of the
+            origin, at a uniformly random heading.
+        settle_time: seconds the nominal shape settles for before the first episode.
+    """
+
+    def __init__(
+        self,
+        description: RobotDescription,
+        *,
+        control_period: float = 0.1,
+        time_step: float = 0.001,
+        camera: bool = False,
+        gui: bool = False,
+        spawn_radius: float = 0.0,
+        settle_time: float = 5.0,
+    ) -> None:
+        steps = control_period / time_step
+        if steps < 1 or abs(steps - round(steps)) > 1e-9:
+            raise ValueError(
+                f"control_period={control_period} must be a whole multiple of time_step={time_step}"
+            )
+        self.description = description
+        self.control_period = control_period
+        self.time_step = time_step
+        self.camera = camera
+        self.gui = gui
+        self.spawn_radius = spawn_radius
+        self.settle_time = settle_time
+        self._n_steps = int(round(steps))
+        self._world: PhysicsWorld | None = None
+        s = description.sensors
+        self.imu = ImuModel(s.imu, description)
+        self.encoder = EncoderModel(s.encoder, description)
+        self.cable_length = CableLengthModel(s.cable_length, description)
+        self.contact = ContactModel(s.contact, description)
+        self.uwb = UwbModel(s.uwb, description)
+        self.camera_model = CameraModel(s.camera)
+        self._schedules = {
+            "imu": SensorSchedule(s.imu.rate),
+            "encoder": SensorSchedule(s.encoder.rate),
+            "cable_length": SensorSchedule(s.cable_length.rate),
+            "contact": SensorSchedule(s.contact.rate),
+            "uwb": SensorSchedule(s.uwb.rate),
+        }
+        self._rng: np.random.Generator | None = None
+        self._calibration: SensorCalibration | None = None
+        self._diverged = False
+
+    # Pickling ships the configuration, not the PyBullet client: a new one is made on
+    # the other side (each process owns its client).
+    def __getstate__(self) -> dict[str, Any]:
+        return {
+            "description": self.description,
+            "control_period": self.control_period,
+            "time_step": self.time_step,
+            "camera": self.camera,
+            "gui": False,
+            "spawn_radius": self.spawn_radius,
+            "settle_time": self.settle_time,
+        }
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        description = state.pop("description")
+        self.__init__(description, **state)  # type: ignore[misc]
+
+    @property
+    def world(self) -> PhysicsWorld:
+        if self._world is None:
+            self._world = PhysicsWorld(self.description, self.time_step, gui=self.gui)
+        return self._world
+
+    @property
+    def calibration(self) -> SensorCalibration:
+        if self._calibration is None:
+            raise RuntimeError("call reset() before reading the calibration")
+        return self._calibration
+
+    def _camera_pose(self) -> NDArray[np.float64]:
+        """Camera-to-world transform (4, 4): +z along the view, +x right, +y down."""
+        c = self.description.sensors.camera
+        eye, target, up = (np.asarray(v, dtype=np.float64) for v in (c.position, c.target, c.up))
+        z = target - eye
+        z /= np.linalg.norm(z)
+        x = np.cross(z, up)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        pose = np.eye(4)
+        pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = x, y, z, eye
+        return pose
+
+    # ------------------------------------------------------------------ episodes
+
+    def reset(self, rng: np.random.Generator) -> StepResult:
+        """Place the settled robot at a random heading and position; return the first
+        samples (one of each sensor, the AHRS having converged while it rested)."""
+        d = self.description
+        self._rng = rng
+        positions, quats = settled_pose(d, self.time_step, self.settle_time)
+        world = self.world
+        # A fresh simulation each episode: PyBullet keeps contact caches otherwise, and
+        # the same seed must give the same episode bit for bit.
+        world._build()
+        world.time = 0.0
+        world.set_rest_lengths(d.rest_lengths)
+        yaw = float(rng.uniform(-np.pi, np.pi))
+        radius = self.spawn_radius * np.sqrt(rng.uniform())
+        heading = rng.uniform(-np.pi, np.pi)
+        shift = np.array([radius * np.cos(heading), radius * np.sin(heading), 0.0])
+        qz = _yaw_quaternion(yaw)
+        c, s = np.cos(yaw), np.sin(yaw)
+        rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        world.set_rod_states(positions @ rot.T + shift, _quat_multiply(qz, quats))
+        self._diverged = False
+
+        self.uwb.reset(rng)
+        self._calibration = SensorCalibration(
+            uwb_offsets=self.uwb.offsets.copy(),
+            anchors=d.anchors,
+            camera_intrinsics=d.sensors.camera.intrinsics,
+            camera_pose=self._camera_pose(),
+        )
+        snap = world.snapshot()
+        self.imu.reset(snap, rng)
+        for sched in self._schedules.values():
+            sched.reset(0.0)
+        for sched in self._schedules.values():
+            sched.due(0.0)  # the t = 0 samples are taken below
+        return StepResult(self._sample({name: [snap] for name in self._schedules}, rng))
+
+    def step(self, targets: NDArray[np.float64]) -> StepResult:
+        if self._rng is None:
+            raise RuntimeError("call reset() before step()")
+        if self._diverged:
+            raise RuntimeError("the simulation diverged; call reset()")
+        world = self.world
+        t0 = world.time
+        t1 = t0 + self._n_steps * self.time_step
+        wanted: dict[int, list[str]] = {}
+        for name, sched in self._schedules.items():
+            for t in sched.due(t1):
+                k = min(max(int(round((t - t0) / self.time_step)) - 1, 0), self._n_steps - 1)
+                wanted.setdefault(k, []).append(name)
+        flags = [False] * self._n_steps
+        for k in wanted:
+            flags[k] = True
+        snaps = world.advance(self._n_steps, targets.tolist(), flags)
+        by_sensor: dict[str, list[Snapshot]] = {name: [] for name in self._schedules}
+        for k, snap in zip(sorted(wanted), snaps, strict=True):
+            for name in wanted[k]:
+                by_sensor[name].append(snap)
+        last = snaps[-1] if flags[-1] else world.snapshot()
+        if not self._finite(last):
+            self._diverged = True
+            return StepResult((), diverged=True)
+        return StepResult(self._sample(by_sensor, self._rng, last))
+
+    def _sample(
+        self,
+        snaps: dict[str, list[Snapshot]],
+        rng: np.random.Generator,
+        last: Snapshot | None = None,
+    ) -> list[Sample]:
+        imu, ahrs = self.imu.sample(snaps["imu"], rng)
+        samples: list[Sample] = [*imu, *ahrs]
+        samples += self.encoder.sample(snaps["encoder"])
+        samples += self.cable_length.sample(snaps["cable_length"], rng)
+        samples += self.contact.sample(snaps["contact"])
+        samples += self.uwb.sample(snaps["uwb"], rng)
+        if self.camera:
+            t = last.t if last is not None else self.world.time
+            rgb, depth = self.world.camera_image(self.description.sensors.camera)
+            samples.append(self.camera_model.frame(t, rgb, depth, rng))
+        samples.sort(key=lambda s: s.t)  # stable: same-time samples keep sensor order
+        return samples
+
+    def _finite(self, snap: Snapshot) -> bool:
+        pos = np.asarray(snap.rod_positions)
+        vel = np.asarray(snap.rod_linear_velocities)
+        ang = np.asarray(snap.rod_angular_velocities)
+        half = max(r.length for r in self.description.rods) / 2.0
+        ok = (
+            np.all(np.isfinite(pos))
+            and np.all(np.isfinite(vel))
+            and np.all(np.isfinite(ang))
+            and np.all(np.isfinite(snap.rod_quaternions))
+            and np.abs(pos).max() < _MAX_EXTENT
+            and np.linalg.norm(vel, axis=1).max() + half * np.linalg.norm(ang, axis=1).max()
+            < _MAX_SPEED
+        )
+        return bool(ok)
+
+    # ------------------------------------------------------------------ truth & views
+
+    def ground_truth(self) -> GroundTruth | None:
+        if self._diverged:
+            return None
+        world = self.world
+        x, v = world.node_states()
+        pos, orn, _, _ = world.rod_states()
+        return GroundTruth(
+            t=world.time,
+            node_positions=x,
+            node_velocities=v,
+            rod_positions=np.array(pos),
+            rod_quaternions=np.array(orn),
+            com=center_of_mass(x, self.description.node_masses),
+            rest_lengths=np.array(world.rest_lengths),
+        )
+
+    def render(self, width: int, height: int) -> NDArray[np.uint8]:
+        """A chase view of the robot for people, (height, width, 3)."""
+        from dataclasses import replace
+
+        truth = self.ground_truth()
+        centre = truth.com if truth is not None else np.zeros(3)
+        scale = 3.0 * self.description.characteristic_length
+        cam = replace(
+            self.description.sensors.camera,
+            position=(float(centre[0]), float(centre[1] - 1.6 * scale), float(centre[2] + scale)),
+            target=(float(centre[0]), float(centre[1]), float(centre[2])),
+            near=0.05 * scale,
+            far=20.0 * scale,
+        )
+        rgb, _ = self.world.camera_image(cam, width, height)
+        return rgb
+
+    def close(self) -> None:
+        if self._world is not None:
+            self._world.close()
+            self._world = None

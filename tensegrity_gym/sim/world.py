@@ -1,0 +1,384 @@
+"""The PyBullet world of one robot: the only module of the project that imports pybullet.
+
+Rods are rigid capsules built with maximal coordinates (as floating-base multibodies
+they blew up under actuation). Cables are unilateral spring-dampers whose forces are
+applied to the rods every physics step; with tension positive and the force on node i
+equal to q (x_j - x_i), damping enters as ``+c dL/dt`` in the tension. Motors slew the
+actuated cables' rest lengths toward their targets at a limited speed.
+
+The hot loop is plain Python over floats: for 9-24 cables it beats numpy, whose
+per-call overhead dominates at these sizes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pybullet
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import CameraConfig, RobotDescription
+
+__all__ = ["PhysicsWorld", "Snapshot"]
+
+
+@dataclass(frozen=True, slots=True)
+class Snapshot:
+    """The true state at one physics step, for the sensor models."""
+
+    t: float
+    rod_positions: list[tuple[float, float, float]]
+    rod_quaternions: list[tuple[float, float, float, float]]
+    rod_linear_velocities: list[tuple[float, float, float]]
+    rod_angular_velocities: list[tuple[float, float, float]]
+    node_positions: list[list[float]]
+    rest_lengths: list[float]
+
+
+class PhysicsWorld:
+    """A PyBullet client holding one robot on flat ground.
+
+    Args:
+        description: the robot.
+        time_step: physics step (s).
+        gui: open PyBullet's window instead of a headless client.
+    """
+
+    def __init__(self, description: RobotDescription, time_step: float, gui: bool = False) -> None:
+        self.description = description
+        self.time_step = time_step
+        self.client = pybullet.connect(pybullet.GUI if gui else pybullet.DIRECT)
+        if self.client < 0:
+            raise RuntimeError("could not start a PyBullet client")
+        d = description
+        self._half = [0.5 * r.length for r in d.rods]
+        self._node_of = [(int(r.nodes[0]), int(r.nodes[1])) for r in d.rods]
+        self._cables = [
+            (int(c.nodes[0]), int(c.nodes[1]), c.stiffness, c.damping) for c in d.cables
+        ]
+        self._actuated = [int(k) for k in d.actuated]
+        lo, hi, speed = d.motor_limits
+        self._motor_lo = lo.tolist()
+        self._motor_hi = hi.tolist()
+        self._motor_step = (speed * time_step).tolist()
+        self.rest_lengths: list[float] = d.rest_lengths.tolist()
+        self.targets: list[float] = [self.rest_lengths[k] for k in self._actuated]
+        self.time = 0.0
+        self.bodies: list[int] = []
+        self._build()
+
+    # ------------------------------------------------------------------ construction
+
+    def _build(self) -> None:
+        c = self.client
+        d = self.description
+        pybullet.resetSimulation(physicsClientId=c)
+        pybullet.setGravity(0.0, 0.0, -d.gravity, physicsClientId=c)
+        pybullet.setTimeStep(self.time_step, physicsClientId=c)
+        pybullet.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=c)
+        plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=c)
+        floor_visual = pybullet.createVisualShape(
+            pybullet.GEOM_BOX,
+            halfExtents=[50.0, 50.0, 0.0005],
+            rgbaColor=[0.55, 0.55, 0.5, 1.0],
+            visualFramePosition=[0.0, 0.0, -0.0005],
+            physicsClientId=c,
+        )
+        self.ground = pybullet.createMultiBody(0.0, plane, floor_visual, physicsClientId=c)
+        pybullet.changeDynamics(
+            self.ground,
+            -1,
+            lateralFriction=d.ground.lateral_friction,
+            rollingFriction=d.ground.rolling_friction,
+            restitution=d.ground.restitution,
+            physicsClientId=c,
+        )
+        self.bodies = []
+        for rod in d.rods:
+            col = pybullet.createCollisionShape(
+                pybullet.GEOM_CAPSULE,
+                radius=rod.endcap_radius,
+                height=rod.length,
+                physicsClientId=c,
+            )
+            h = 0.5 * rod.length
+            vis = pybullet.createVisualShapeArray(
+                shapeTypes=[pybullet.GEOM_CYLINDER, pybullet.GEOM_SPHERE, pybullet.GEOM_SPHERE],
+                radii=[rod.radius, rod.endcap_radius, rod.endcap_radius],
+                lengths=[rod.length, 0.0, 0.0],
+                visualFramePositions=[[0.0, 0.0, 0.0], [0.0, 0.0, -h], [0.0, 0.0, h]],
+                physicsClientId=c,
+            )
+            body = pybullet.createMultiBody(
+                rod.mass, col, vis, useMaximalCoordinates=True, physicsClientId=c
+            )
+            pybullet.changeDynamics(
+                body,
+                -1,
+                lateralFriction=d.ground.lateral_friction,
+                rollingFriction=d.ground.rolling_friction,
+                restitution=d.ground.restitution,
+                linearDamping=0.0,
+                angularDamping=0.0,
+                physicsClientId=c,
+            )
+            # Rod body grey, endcaps in the rod's colour (papers/003 paints endcaps).
+            pybullet.changeVisualShape(
+                body, -1, shapeIndex=0, rgbaColor=[0.3, 0.3, 0.3, 1.0], physicsClientId=c
+            )
+            for shape in (1, 2):
+                pybullet.changeVisualShape(
+                    body, -1, shapeIndex=shape, rgbaColor=list(rod.color), physicsClientId=c
+                )
+            self.bodies.append(body)
+
+    # ------------------------------------------------------------------ state access
+
+    def set_node_positions(self, nodes: NDArray[np.float64]) -> None:
+        """Place each rod so its endcaps sit at the given nodes (n, 3), at rest."""
+        from tensegrity_gym.model.kinematics import rod_quaternion_from_axis
+
+        for k, body in enumerate(self.bodies):
+            a, b = self._node_of[k]
+            axis = nodes[b] - nodes[a]
+            axis = axis / np.linalg.norm(axis)
+            centre = 0.5 * (nodes[a] + nodes[b])
+            q = rod_quaternion_from_axis(axis)
+            pybullet.resetBasePositionAndOrientation(
+                body, centre.tolist(), q.tolist(), physicsClientId=self.client
+            )
+            pybullet.resetBaseVelocity(body, [0.0] * 3, [0.0] * 3, physicsClientId=self.client)
+
+    def set_rod_states(
+        self,
+        positions: NDArray[np.float64],
+        quaternions: NDArray[np.float64],
+        linear: NDArray[np.float64] | None = None,
+        angular: NDArray[np.float64] | None = None,
+    ) -> None:
+        """Set every rod's pose (r, 3), (r, 4) and velocities (r, 3) (zero if omitted)."""
+        for k, body in enumerate(self.bodies):
+            pybullet.resetBasePositionAndOrientation(
+                body, positions[k].tolist(), quaternions[k].tolist(), physicsClientId=self.client
+            )
+            lin = [0.0] * 3 if linear is None else linear[k].tolist()
+            ang = [0.0] * 3 if angular is None else angular[k].tolist()
+            pybullet.resetBaseVelocity(body, lin, ang, physicsClientId=self.client)
+
+    def set_rest_lengths(self, rest_lengths: Sequence[float]) -> None:
+        """Set all cables' rest lengths (m); actuated targets follow."""
+        self.rest_lengths = [float(x) for x in rest_lengths]
+        self.targets = [self.rest_lengths[k] for k in self._actuated]
+
+    def rod_states(
+        self,
+    ) -> tuple[
+        list[tuple[float, float, float]],
+        list[tuple[float, float, float, float]],
+        list[tuple[float, float, float]],
+        list[tuple[float, float, float]],
+    ]:
+        """Positions, quaternions (x, y, z, w), linear and angular velocities of the rods."""
+        c = self.client
+        pos, orn, lin, ang = [], [], [], []
+        for body in self.bodies:
+            p, q = pybullet.getBasePositionAndOrientation(body, physicsClientId=c)
+            v, w = pybullet.getBaseVelocity(body, physicsClientId=c)
+            pos.append(p)
+            orn.append(q)
+            lin.append(v)
+            ang.append(w)
+        return pos, orn, lin, ang
+
+    def node_states(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Node positions and velocities, each (n, 3)."""
+        pos, orn, lin, ang = self.rod_states()
+        n = self.description.n_nodes
+        x = np.empty((n, 3))
+        v = np.empty((n, 3))
+        for k in range(len(self.bodies)):
+            qx, qy, qz, qw = orn[k]
+            axis = np.array(
+                [2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy)]
+            )
+            r = self._half[k] * axis
+            a, b = self._node_of[k]
+            p = np.asarray(pos[k])
+            w = np.asarray(ang[k])
+            x[a], x[b] = p - r, p + r
+            spin = np.cross(w, r)
+            v[a], v[b] = np.asarray(lin[k]) - spin, np.asarray(lin[k]) + spin
+        return x, v
+
+    # ------------------------------------------------------------------ stepping
+
+    def advance(
+        self, n_steps: int, targets: Sequence[float], snapshot_steps: Sequence[bool]
+    ) -> list[Snapshot]:
+        """Run ``n_steps`` physics steps toward the actuated rest-length ``targets`` (m).
+
+        ``snapshot_steps[i]`` asks for the state after step i. Returns those snapshots.
+        """
+        c = self.client
+        bodies = self.bodies
+        n_rods = len(bodies)
+        half = self._half
+        node_of = self._node_of
+        cables = self._cables
+        actuated = self._actuated
+        lo, hi, dmax = self._motor_lo, self._motor_hi, self._motor_step
+        rest = self.rest_lengths
+        tgt = [min(max(float(x), lo[i]), hi[i]) for i, x in enumerate(targets)]
+        self.targets = tgt
+        n_nodes = self.description.n_nodes
+        get_pose = pybullet.getBasePositionAndOrientation
+        get_vel = pybullet.getBaseVelocity
+        apply_force = pybullet.applyExternalForce
+        apply_torque = pybullet.applyExternalTorque
+        step_sim = pybullet.stepSimulation
+        world_frame = pybullet.WORLD_FRAME
+        dt = self.time_step
+        snapshots: list[Snapshot] = []
+        nx = [[0.0, 0.0, 0.0] for _ in range(n_nodes)]
+        nv = [[0.0, 0.0, 0.0] for _ in range(n_nodes)]
+        for step in range(n_steps):
+            # Motors slew toward their targets.
+            for i, k in enumerate(actuated):
+                err = tgt[i] - rest[k]
+                s = dmax[i]
+                rest[k] += s if err > s else (-s if err < -s else err)
+            poses = []
+            for r in range(n_rods):
+                p, q = get_pose(bodies[r], physicsClientId=c)
+                v, w = get_vel(bodies[r], physicsClientId=c)
+                poses.append(p)
+                qx, qy, qz, qw = q
+                h = half[r]
+                ax = 2.0 * (qx * qz + qw * qy) * h
+                ay = 2.0 * (qy * qz - qw * qx) * h
+                az = (1.0 - 2.0 * (qx * qx + qy * qy)) * h
+                wx, wy, wz = w
+                sx = wy * az - wz * ay
+                sy = wz * ax - wx * az
+                sz = wx * ay - wy * ax
+                a, b = node_of[r]
+                na, nb, va, vb = nx[a], nx[b], nv[a], nv[b]
+                na[0] = p[0] - ax
+                na[1] = p[1] - ay
+                na[2] = p[2] - az
+                nb[0] = p[0] + ax
+                nb[1] = p[1] + ay
+                nb[2] = p[2] + az
+                va[0] = v[0] - sx
+                va[1] = v[1] - sy
+                va[2] = v[2] - sz
+                vb[0] = v[0] + sx
+                vb[1] = v[1] + sy
+                vb[2] = v[2] + sz
+            fx = [0.0] * n_nodes
+            fy = [0.0] * n_nodes
+            fz = [0.0] * n_nodes
+            for k, (i, j, stiff, damp) in enumerate(cables):
+                xi, xj = nx[i], nx[j]
+                dx = xj[0] - xi[0]
+                dy = xj[1] - xi[1]
+                dz = xj[2] - xi[2]
+                length = math.sqrt(dx * dx + dy * dy + dz * dz)
+                stretch = length - rest[k]
+                if stretch <= 0.0 or length < 1e-9:
+                    continue  # slack: cables only pull
+                vi, vj = nv[i], nv[j]
+                rate = (dx * (vj[0] - vi[0]) + dy * (vj[1] - vi[1]) + dz * (vj[2] - vi[2])) / length
+                tension = stiff * stretch + damp * rate
+                if tension <= 0.0:
+                    continue
+                q = tension / length
+                ex, ey, ez = q * dx, q * dy, q * dz
+                fx[i] += ex
+                fy[i] += ey
+                fz[i] += ez
+                fx[j] -= ex
+                fy[j] -= ey
+                fz[j] -= ez
+            for r in range(n_rods):
+                a, b = node_of[r]
+                p = poses[r]
+                na, nb = nx[a], nx[b]
+                Fx = fx[a] + fx[b]
+                Fy = fy[a] + fy[b]
+                Fz = fz[a] + fz[b]
+                # Torque about the rod centre: r_a x f_a + r_b x f_b, with r_b = -r_a.
+                rx, ry, rz = nb[0] - p[0], nb[1] - p[1], nb[2] - p[2]
+                gx, gy, gz = fx[b] - fx[a], fy[b] - fy[a], fz[b] - fz[a]
+                apply_force(bodies[r], -1, (Fx, Fy, Fz), p, world_frame, physicsClientId=c)
+                apply_torque(
+                    bodies[r],
+                    -1,
+                    (ry * gz - rz * gy, rz * gx - rx * gz, rx * gy - ry * gx),
+                    world_frame,
+                    physicsClientId=c,
+                )
+            step_sim(physicsClientId=c)
+            self.time += dt
+            if snapshot_steps[step]:
+                snapshots.append(self.snapshot())
+        return snapshots
+
+    def snapshot(self) -> Snapshot:
+        pos, orn, lin, ang = self.rod_states()
+        nodes: list[list[float]] = [[0.0, 0.0, 0.0] for _ in range(self.description.n_nodes)]
+        for r in range(len(self.bodies)):
+            qx, qy, qz, qw = orn[r]
+            h = self._half[r]
+            ax = 2.0 * (qx * qz + qw * qy) * h
+            ay = 2.0 * (qy * qz - qw * qx) * h
+            az = (1.0 - 2.0 * (qx * qx + qy * qy)) * h
+            a, b = self._node_of[r]
+            p = pos[r]
+            nodes[a] = [p[0] - ax, p[1] - ay, p[2] - az]
+            nodes[b] = [p[0] + ax, p[1] + ay, p[2] + az]
+        return Snapshot(self.time, pos, orn, lin, ang, nodes, list(self.rest_lengths))
+
+    # ------------------------------------------------------------------ rendering
+
+    def camera_image(
+        self, camera: CameraConfig, width: int | None = None, height: int | None = None
+    ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+        """RGB (H, W, 3) and metric depth along the optical axis (H, W) from ``camera``."""
+        w = width or camera.width
+        h = height or camera.height
+        view = pybullet.computeViewMatrix(
+            camera.position, camera.target, camera.up, physicsClientId=self.client
+        )
+        proj = pybullet.computeProjectionMatrixFOV(
+            camera.vertical_fov, w / h, camera.near, camera.far, physicsClientId=self.client
+        )
+        _, _, rgba, depth_buffer, _ = pybullet.getCameraImage(
+            w,
+            h,
+            view,
+            proj,
+            renderer=pybullet.ER_TINY_RENDERER,
+            flags=pybullet.ER_NO_SEGMENTATION_MASK,
+            physicsClientId=self.client,
+        )
+        rgb = np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[..., :3].copy()
+        zb = np.asarray(depth_buffer, dtype=np.float64).reshape(h, w)
+        near, far = camera.near, camera.far
+        depth = (far * near / (far - (far - near) * zb)).astype(np.float32)
+        return rgb, depth
+
+    def close(self) -> None:
+        if self.client >= 0:
+            try:
+                pybullet.disconnect(physicsClientId=self.client)
+            except pybullet.error:
+                pass  # already gone (e.g. the GUI window was closed)
+            self.client = -1
