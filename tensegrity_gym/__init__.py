@@ -1,0 +1,29 @@
+"""Gymnasium environments for tensegrity robots whose policies see estimated states.
+
+Importing the package only registers the env ids; nothing heavy is imported.
+"""
+
+from gymnasium.envs.registration import register
+
+__version__ = "0.1.0"
+
+_ENTRY = "tensegrity_gym.envs.factory:make_roll_env"
+
+register(
+    id="tensegrity_gym/ThreeBarRoll-v0",
+    entry_point=_ENTRY,
+    max_episode_steps=300,
+    kwargs={"robot": "three_bar"},
+)
+register(
+    id="tensegrity_gym/ThreeBarLargeRoll-v0",
+    entry_point=_ENTRY,
+    max_episode_steps=300,
+    kwargs={"robot": "three_bar_large"},
+)
+register(
+    id="tensegrity_gym/SuperBallRoll-v0",
+    entry_point=_ENTRY,
+    max_episode_steps=300,
+    kwargs={"robot": "superball"},
+)

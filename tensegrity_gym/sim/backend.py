@@ -134,6 +134,7 @@ class SimBackend:
         self._rng: np.random.Generator | None = None
         self._calibration: SensorCalibration | None = None
         self._diverged = False
+        self._truth: GroundTruth | None = None
 
     # Pickling ships the configuration, not the PyBullet client: a new one is made on
     # the other side (each process owns its client).
@@ -190,6 +191,7 @@ class SimBackend:
         # the same seed must give the same episode bit for bit.
         world._build()
         world.time = 0.0
+        self._truth = None
         world.set_rest_lengths(d.rest_lengths)
         yaw = float(rng.uniform(-np.pi, np.pi))
         radius = self.spawn_radius * np.sqrt(rng.uniform())
@@ -283,6 +285,11 @@ class SimBackend:
     def ground_truth(self) -> GroundTruth | None:
         if self._diverged:
             return None
+        if self._truth is None or self._truth.t != self.world.time:
+            self._truth = self._read_truth()
+        return self._truth
+
+    def _read_truth(self) -> GroundTruth:
         world = self.world
         x, v = world.node_states()
         pos, orn, _, _ = world.rod_states()

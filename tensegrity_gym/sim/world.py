@@ -13,11 +13,19 @@ per-call overhead dominates at these sizes.
 from __future__ import annotations
 
 import math
+import os
+import sys
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 import pybullet
+
+from tensegrity_gym.model.kinematics import (
+    member_lengths,
+    quaternion_rotate,
+    rod_quaternion_from_axis,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -54,11 +62,18 @@ class PhysicsWorld:
     def __init__(self, description: RobotDescription, time_step: float, gui: bool = False) -> None:
         self.description = description
         self.time_step = time_step
+        if gui and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+            # PyBullet's GUI ends the whole process when it finds no X server.
+            raise RuntimeError(
+                "render_mode='human' needs a display (DISPLAY is not set); "
+                "use render_mode='rgb_array' on a headless machine"
+            )
         self.client = pybullet.connect(pybullet.GUI if gui else pybullet.DIRECT)
         if self.client < 0:
             raise RuntimeError("could not start a PyBullet client")
         d = description
         self._half = [0.5 * r.length for r in d.rods]
+        self._z_half = np.array([[0.0, 0.0, h] for h in self._half])
         self._node_of = [(int(r.nodes[0]), int(r.nodes[1])) for r in d.rods]
         self._cables = [
             (int(c.nodes[0]), int(c.nodes[1]), c.stiffness, c.damping) for c in d.cables
@@ -72,6 +87,7 @@ class PhysicsWorld:
         self.targets: list[float] = [self.rest_lengths[k] for k in self._actuated]
         self.time = 0.0
         self.bodies: list[int] = []
+        self._cable_lengths: list[float] = [0.0] * d.n_cables
         self._build()
 
     # ------------------------------------------------------------------ construction
@@ -143,8 +159,6 @@ class PhysicsWorld:
 
     def set_node_positions(self, nodes: NDArray[np.float64]) -> None:
         """Place each rod so its endcaps sit at the given nodes (n, 3), at rest."""
-        from tensegrity_gym.model.kinematics import rod_quaternion_from_axis
-
         for k, body in enumerate(self.bodies):
             a, b = self._node_of[k]
             axis = nodes[b] - nodes[a]
@@ -155,6 +169,7 @@ class PhysicsWorld:
                 body, centre.tolist(), q.tolist(), physicsClientId=self.client
             )
             pybullet.resetBaseVelocity(body, [0.0] * 3, [0.0] * 3, physicsClientId=self.client)
+        self._sync_cable_lengths()
 
     def set_rod_states(
         self,
@@ -171,6 +186,12 @@ class PhysicsWorld:
             lin = [0.0] * 3 if linear is None else linear[k].tolist()
             ang = [0.0] * 3 if angular is None else angular[k].tolist()
             pybullet.resetBaseVelocity(body, lin, ang, physicsClientId=self.client)
+        self._sync_cable_lengths()
+
+    def _sync_cable_lengths(self) -> None:
+        """Reset the cable-length history of the damping term after a teleport."""
+        x, _ = self.node_states()
+        self._cable_lengths = member_lengths(x, self.description.cable_nodes).tolist()
 
     def set_rest_lengths(self, rest_lengths: Sequence[float]) -> None:
         """Set all cables' rest lengths (m); actuated targets follow."""
@@ -200,22 +221,24 @@ class PhysicsWorld:
     def node_states(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Node positions and velocities, each (n, 3)."""
         pos, orn, lin, ang = self.rod_states()
-        n = self.description.n_nodes
-        x = np.empty((n, 3))
-        v = np.empty((n, 3))
-        for k in range(len(self.bodies)):
-            qx, qy, qz, qw = orn[k]
-            axis = np.array(
-                [2.0 * (qx * qz + qw * qy), 2.0 * (qy * qz - qw * qx), 1.0 - 2.0 * (qx * qx + qy * qy)]
-            )
-            r = self._half[k] * axis
-            a, b = self._node_of[k]
-            p = np.asarray(pos[k])
-            w = np.asarray(ang[k])
-            x[a], x[b] = p - r, p + r
-            spin = np.cross(w, r)
-            v[a], v[b] = np.asarray(lin[k]) - spin, np.asarray(lin[k]) + spin
-        return x, v
+        p = np.asarray(pos)
+        w = np.asarray(ang)
+        v = np.asarray(lin)
+        arm = quaternion_rotate(np.asarray(orn), self._z_half)  # centre to second node
+        spin = np.stack(
+            [
+                w[:, 1] * arm[:, 2] - w[:, 2] * arm[:, 1],
+                w[:, 2] * arm[:, 0] - w[:, 0] * arm[:, 2],
+                w[:, 0] * arm[:, 1] - w[:, 1] * arm[:, 0],
+            ],
+            axis=1,
+        )
+        rn = self.description.rod_nodes
+        x = np.empty((self.description.n_nodes, 3))
+        xd = np.empty_like(x)
+        x[rn[:, 0]], x[rn[:, 1]] = p - arm, p + arm
+        xd[rn[:, 0]], xd[rn[:, 1]] = v - spin, v + spin
+        return x, xd
 
     # ------------------------------------------------------------------ stepping
 
@@ -239,49 +262,47 @@ class PhysicsWorld:
         self.targets = tgt
         n_nodes = self.description.n_nodes
         get_pose = pybullet.getBasePositionAndOrientation
-        get_vel = pybullet.getBaseVelocity
         apply_force = pybullet.applyExternalForce
         apply_torque = pybullet.applyExternalTorque
         step_sim = pybullet.stepSimulation
         world_frame = pybullet.WORLD_FRAME
         dt = self.time_step
+        inv_dt = 1.0 / dt
+        prev_len = self._cable_lengths
         snapshots: list[Snapshot] = []
         nx = [[0.0, 0.0, 0.0] for _ in range(n_nodes)]
-        nv = [[0.0, 0.0, 0.0] for _ in range(n_nodes)]
+        moving = True
         for step in range(n_steps):
-            # Motors slew toward their targets.
-            for i, k in enumerate(actuated):
-                err = tgt[i] - rest[k]
-                s = dmax[i]
-                rest[k] += s if err > s else (-s if err < -s else err)
+            if moving:  # motors slew toward their targets
+                moving = False
+                for i, k in enumerate(actuated):
+                    err = tgt[i] - rest[k]
+                    s = dmax[i]
+                    if err > s:
+                        rest[k] += s
+                        moving = True
+                    elif err < -s:
+                        rest[k] -= s
+                        moving = True
+                    else:
+                        rest[k] = tgt[i]
             poses = []
             for r in range(n_rods):
                 p, q = get_pose(bodies[r], physicsClientId=c)
-                v, w = get_vel(bodies[r], physicsClientId=c)
                 poses.append(p)
                 qx, qy, qz, qw = q
                 h = half[r]
                 ax = 2.0 * (qx * qz + qw * qy) * h
                 ay = 2.0 * (qy * qz - qw * qx) * h
                 az = (1.0 - 2.0 * (qx * qx + qy * qy)) * h
-                wx, wy, wz = w
-                sx = wy * az - wz * ay
-                sy = wz * ax - wx * az
-                sz = wx * ay - wy * ax
                 a, b = node_of[r]
-                na, nb, va, vb = nx[a], nx[b], nv[a], nv[b]
+                na, nb = nx[a], nx[b]
                 na[0] = p[0] - ax
                 na[1] = p[1] - ay
                 na[2] = p[2] - az
                 nb[0] = p[0] + ax
                 nb[1] = p[1] + ay
                 nb[2] = p[2] + az
-                va[0] = v[0] - sx
-                va[1] = v[1] - sy
-                va[2] = v[2] - sz
-                vb[0] = v[0] + sx
-                vb[1] = v[1] + sy
-                vb[2] = v[2] + sz
             fx = [0.0] * n_nodes
             fy = [0.0] * n_nodes
             fz = [0.0] * n_nodes
@@ -291,11 +312,13 @@ class PhysicsWorld:
                 dy = xj[1] - xi[1]
                 dz = xj[2] - xi[2]
                 length = math.sqrt(dx * dx + dy * dy + dz * dz)
+                # dL/dt by a backward difference: one step of lag, far below the
+                # damping time constants, and it spares reading rod velocities.
+                rate = (length - prev_len[k]) * inv_dt
+                prev_len[k] = length
                 stretch = length - rest[k]
-                if stretch <= 0.0 or length < 1e-9:
+                if stretch <= 0.0:
                     continue  # slack: cables only pull
-                vi, vj = nv[i], nv[j]
-                rate = (dx * (vj[0] - vi[0]) + dy * (vj[1] - vi[1]) + dz * (vj[2] - vi[2])) / length
                 tension = stiff * stretch + damp * rate
                 if tension <= 0.0:
                     continue
@@ -310,14 +333,18 @@ class PhysicsWorld:
             for r in range(n_rods):
                 a, b = node_of[r]
                 p = poses[r]
-                na, nb = nx[a], nx[b]
-                Fx = fx[a] + fx[b]
-                Fy = fy[a] + fy[b]
-                Fz = fz[a] + fz[b]
-                # Torque about the rod centre: r_a x f_a + r_b x f_b, with r_b = -r_a.
+                nb = nx[b]
+                # Torque about the rod centre: r_a x f_a + r_b x f_b, with r_a = -r_b.
                 rx, ry, rz = nb[0] - p[0], nb[1] - p[1], nb[2] - p[2]
                 gx, gy, gz = fx[b] - fx[a], fy[b] - fy[a], fz[b] - fz[a]
-                apply_force(bodies[r], -1, (Fx, Fy, Fz), p, world_frame, physicsClientId=c)
+                apply_force(
+                    bodies[r],
+                    -1,
+                    (fx[a] + fx[b], fy[a] + fy[b], fz[a] + fz[b]),
+                    p,
+                    world_frame,
+                    physicsClientId=c,
+                )
                 apply_torque(
                     bodies[r],
                     -1,

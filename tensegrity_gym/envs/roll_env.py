@@ -1,0 +1,167 @@
+"""The Gymnasium env, assembled from a backend, an estimator and a task.
+
+The policy sees only the estimator's output. Ground truth, where the backend has it,
+goes to ``info`` (``com_true``, ``estimation_error``) and nowhere else.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.estimate import Estimate
+    from tensegrity_gym.model.protocols import Backend, Estimator
+    from tensegrity_gym.tasks.roll import RollTask
+
+__all__ = ["TensegrityEnv"]
+
+
+class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
+    """A tensegrity robot whose policy sees estimated states.
+
+    Actions are ``Box(-1, 1, (m,), float32)``, one per actuated cable, mapped linearly
+    onto each motor's rest-length range ``[min_rest_length, max_rest_length]``. Values
+    outside [-1, 1] are clipped silently; NaN or inf raises ``ValueError``.
+
+    ``info`` holds ``com_estimate`` (m, (3,)), ``progress`` (m along the goal),
+    ``estimator_healthy``, ``estimator_reinitialised``, ``sim_diverged`` and, where the
+    backend has ground truth, ``com_true`` and ``estimation_error`` (CoM distance, m).
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}  # noqa: RUF012
+
+    def __init__(
+        self,
+        backend: Backend,
+        estimator: Estimator,
+        task: RollTask,
+        *,
+        render_mode: str | None = None,
+        render_size: tuple[int, int] = (480, 360),
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode={render_mode!r} is not one of {self.metadata['render_modes']}"
+            )
+        self.backend = backend
+        self.estimator = estimator
+        self.task = task
+        self.render_mode = render_mode
+        self.render_size = render_size
+        d = backend.description
+        self.action_space = spaces.Box(-1.0, 1.0, (d.n_actuated,), dtype=np.float32)
+        self.observation_space = task.observation_space
+        lo, hi, _ = d.motor_limits
+        self._target_lo, self._target_span = lo, hi - lo
+        self._estimate: Estimate | None = None
+        self._observation: NDArray[np.float32] | None = None
+
+    # ------------------------------------------------------------------ helpers
+
+    def action_to_targets(self, action: NDArray[np.floating[Any]]) -> NDArray[np.float64]:
+        """Rest-length targets (m), (m,), for an action in [-1, 1]^m (clipped)."""
+        a = np.clip(np.asarray(action, dtype=np.float64), -1.0, 1.0)
+        return self._target_lo + 0.5 * (a + 1.0) * self._target_span
+
+    def targets_to_action(self, targets: NDArray[np.float64]) -> NDArray[np.float32]:
+        """The action that commands the given rest-length targets (m)."""
+        a = 2.0 * (np.asarray(targets) - self._target_lo) / self._target_span - 1.0
+        return np.clip(a, -1.0, 1.0).astype(np.float32)
+
+    def _check_action(self, action: Any) -> NDArray[np.float64]:
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != self.action_space.shape:
+            raise ValueError(
+                f"action has shape {a.shape}, expected {self.action_space.shape} "
+                f"(one entry per actuated cable)"
+            )
+        bad = np.flatnonzero(~np.isfinite(a))
+        if bad.size:
+            names = [self.backend.description.cables[int(k)].name for k in
+                     self.backend.description.actuated[bad]]  # fmt: skip
+            raise ValueError(
+                f"action entries {bad.tolist()} (cables {names}) are not finite: "
+                f"{a[bad].tolist()}"
+            )
+        return a
+
+    def _info(self, estimate: Estimate, diverged: bool = False) -> dict[str, Any]:
+        info: dict[str, Any] = {
+            "com_estimate": estimate.com.copy(),
+            "progress": self.task.progress(estimate),
+            "estimator_healthy": estimate.healthy,
+            "estimator_reinitialised": estimate.reinitialised,
+            "sim_diverged": diverged,
+        }
+        truth = None if diverged else self.backend.ground_truth()
+        if truth is not None:
+            info["com_true"] = truth.com.copy()
+            info["estimation_error"] = float(np.linalg.norm(truth.com - estimate.com))
+        return info
+
+    # ------------------------------------------------------------------ gym API
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[NDArray[np.float32], dict[str, Any]]:
+        super().reset(seed=seed)
+        start = self.backend.reset(self.np_random)
+        d = self.backend.description
+        command = d.rest_lengths[d.actuated].copy()  # the motors hold their initial lengths
+        estimate = self.estimator.reset(
+            self.backend.description,
+            self.backend.calibration,
+            start.samples,
+            command,
+            self.np_random,
+        )
+        self.task.reset(estimate, self.np_random)
+        self._estimate = estimate
+        self._observation = self.task.observation(estimate)
+        if self.render_mode == "human":
+            self.render()
+        return self._observation, self._info(estimate)
+
+    def step(
+        self, action: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        if self._estimate is None or self._observation is None:
+            raise RuntimeError("call reset() before step()")
+        a = self._check_action(action)
+        targets = self.action_to_targets(a)
+        result = self.backend.step(targets)
+        if result.diverged:
+            # The episode ends here; the policy gets the last finite observation.
+            info = self._info(self._estimate, diverged=True)
+            info.update(result.info)
+            return self._observation, 0.0, False, True, info
+        previous = self._estimate
+        estimate = self.estimator.update(result.samples, targets)
+        self._estimate = estimate
+        self._observation = self.task.observation(estimate)
+        reward = self.task.reward(previous, estimate, np.clip(a, -1.0, 1.0).astype(np.float32))
+        if not np.isfinite(reward):
+            reward = 0.0
+        info = self._info(estimate)
+        info.update(result.info)
+        if self.render_mode == "human":
+            self.render()
+        return self._observation, float(reward), self.task.terminated(estimate), False, info
+
+    def render(self) -> NDArray[np.uint8] | None:
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode to make()")
+            return None
+        if self.render_mode == "rgb_array":
+            w, h = self.render_size
+            return self.backend.render(w, h)
+        return None  # "human": PyBullet's own window shows the scene
+
+    def close(self) -> None:
+        self.backend.close()
