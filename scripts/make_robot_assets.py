@@ -64,7 +64,9 @@ def icosahedron_nodes(rod_length: float) -> np.ndarray:
     return np.array(nodes)
 
 
-def icosahedron_topology(nodes: np.ndarray) -> tuple[list[tuple[int, int]], list[tuple[int, int, bool]]]:
+def icosahedron_topology(
+    nodes: np.ndarray,
+) -> tuple[list[tuple[int, int]], list[tuple[int, int, bool]]]:
     rods = [(2 * i, 2 * i + 1) for i in range(6)]
     rod_of = {n: i for i, (a, b) in enumerate(rods) for n in (a, b)}
     dist = {
@@ -95,7 +97,9 @@ def icosahedron_topology(nodes: np.ndarray) -> tuple[list[tuple[int, int]], list
     return rods, cables
 
 
-def self_stress(nodes: np.ndarray, rods: list[tuple[int, int]], cables: list[tuple[int, int, bool]]) -> np.ndarray:
+def self_stress(
+    nodes: np.ndarray, rods: list[tuple[int, int]], cables: list[tuple[int, int, bool]]
+) -> np.ndarray:
     """Force densities (cables first, then rods) of the self-stress state, cables > 0."""
     members = [(i, j) for i, j, _ in cables] + rods
     A = np.zeros((nodes.size, len(members)))
@@ -202,8 +206,29 @@ COLORS = [
 ]
 
 
+def camera(position: list[float], target: list[float], near: float, far: float) -> dict[str, Any]:
+    """An overhead RGB-D camera like papers/003's, 320x240."""
+    return {
+        "position": position,
+        "target": target,
+        "up": [0.0, 0.0, 1.0],
+        "width": 320,
+        "height": 240,
+        "vertical_fov": 58.0,
+        "near": near,
+        "far": far,
+        "rate": 10.0,
+        "depth_noise": 0.002,
+        "depth_noise_quadratic": 0.0025,
+    }
+
+
 def sensors(
-    scale: float, anchors_half: float, uwb_offset: float, camera: dict[str, Any], heights: tuple[float, float]
+    scale: float,
+    anchors_half: float,
+    uwb_offset: float,
+    camera: dict[str, Any],
+    heights: tuple[float, float],
 ) -> dict[str, Any]:
     a = anchors_half
     anchor_xy = [(a, a), (0.0, a), (-a, a), (-a, 0.0), (-a, -a), (0.0, -a), (a, -a), (a, 0.0)]
@@ -220,7 +245,11 @@ def sensors(
             "ahrs_gain": 0.5,
         },
         "encoder": {"rate": 100.0, "resolution": round(1e-4 * scale, 6)},
-        "cable_length": {"rate": 10.0, "noise": round(0.004 * scale, 5), "slack_bias": round(0.01 * scale, 5)},
+        "cable_length": {
+            "rate": 10.0,
+            "noise": round(0.004 * scale, 5),
+            "slack_bias": round(0.01 * scale, 5),
+        },
         "uwb": {
             "rate": 15.0,
             "packet_spacing": 0.001,
@@ -231,8 +260,7 @@ def sensors(
             "offset_std": 0.05,
             "reject_fraction": [0.3, 0.7],
             "anchors": [
-                [round(x, 3), round(y, 3), heights[k % 2]]
-                for k, (x, y) in enumerate(anchor_xy)
+                [round(x, 3), round(y, 3), heights[k % 2]] for k, (x, y) in enumerate(anchor_xy)
             ],
         },
         "contact": {"rate": 100.0, "threshold": 0.002},
@@ -242,41 +270,75 @@ def sensors(
 
 def main() -> None:
     small = {
-        "rod_length": 0.325, "rod_radius": 0.01, "endcap_radius": 0.0175, "rod_mass": 0.16,
-        "actuated_stiffness": 2000.0, "actuated_damping": 5.0,
-        "passive_stiffness": 400.0, "passive_damping": 2.0,
-        "pretension": 12.0, "min_fraction": 0.55, "max_fraction": 1.05, "motor_speed": 0.15,
-        "friction": 0.8, "face": "largest", "colors": COLORS[:3],
-        "sensors": sensors(1.0, 1.5, 0.0, {
-            "position": [0.3, -1.1, 1.2], "target": [0.3, 0.0, 0.0], "up": [0.0, 0.0, 1.0],
-            "width": 320, "height": 240, "vertical_fov": 58.0, "near": 0.1, "far": 5.0,
-            "rate": 10.0, "depth_noise": 0.002, "depth_noise_quadratic": 0.0025,
-        }, (1.0, 0.2)),
+        "rod_length": 0.325,
+        "rod_radius": 0.01,
+        "endcap_radius": 0.0175,
+        "rod_mass": 0.16,
+        "actuated_stiffness": 2000.0,
+        "actuated_damping": 5.0,
+        "passive_stiffness": 400.0,
+        "passive_damping": 2.0,
+        "pretension": 12.0,
+        "min_fraction": 0.55,
+        "max_fraction": 1.05,
+        "motor_speed": 0.15,
+        "friction": 0.8,
+        "face": "largest",
+        "colors": COLORS[:3],
+        "sensors": sensors(
+            1.0,
+            1.5,
+            0.0,
+            camera([0.3, -1.1, 1.2], [0.3, 0.0, 0.0], 0.1, 5.0),
+            (1.0, 0.2),
+        ),
     }
     large = dict(small)
     k = 1.45 / 0.325
-    large.update({
-        "rod_length": 1.45, "rod_radius": 0.038, "endcap_radius": 0.06, "rod_mass": 4.0,
-        "actuated_stiffness": 5000.0, "actuated_damping": 50.0,
-        "passive_stiffness": 1000.0, "passive_damping": 20.0,
-        "pretension": 120.0, "motor_speed": 0.3,
-        "sensors": sensors(k, 5.0, 0.0, {
-            "position": [1.5, -4.5, 4.5], "target": [1.5, 0.0, 0.0], "up": [0.0, 0.0, 1.0],
-            "width": 320, "height": 240, "vertical_fov": 58.0, "near": 0.3, "far": 15.0,
-            "rate": 10.0, "depth_noise": 0.002, "depth_noise_quadratic": 0.0025,
-        }, (2.0, 0.3)),
-    })
+    large.update(
+        {
+            "rod_length": 1.45,
+            "rod_radius": 0.038,
+            "endcap_radius": 0.06,
+            "rod_mass": 4.0,
+            "actuated_stiffness": 5000.0,
+            "actuated_damping": 50.0,
+            "passive_stiffness": 1000.0,
+            "passive_damping": 20.0,
+            "pretension": 120.0,
+            "motor_speed": 0.3,
+            "sensors": sensors(
+                k,
+                5.0,
+                0.0,
+                camera([1.5, -4.5, 4.5], [1.5, 0.0, 0.0], 0.3, 15.0),
+                (2.0, 0.3),
+            ),
+        }
+    )
     superball = {
-        "rod_length": 1.5, "rod_radius": 0.025, "endcap_radius": 0.06, "rod_mass": 3.6,
-        "actuated_stiffness": 3150.0, "actuated_damping": 50.0,
-        "passive_stiffness": 1000.0, "passive_damping": 20.0,
-        "pretension": 90.0, "min_fraction": 0.6, "max_fraction": 1.05, "motor_speed": 0.3,
-        "friction": 0.8, "face": "largest", "colors": COLORS,
-        "sensors": sensors(4.0, 4.75, 0.1, {
-            "position": [1.5, -5.0, 5.0], "target": [1.5, 0.0, 0.0], "up": [0.0, 0.0, 1.0],
-            "width": 320, "height": 240, "vertical_fov": 58.0, "near": 0.3, "far": 15.0,
-            "rate": 10.0, "depth_noise": 0.002, "depth_noise_quadratic": 0.0025,
-        }, (2.0, 0.3)),
+        "rod_length": 1.5,
+        "rod_radius": 0.025,
+        "endcap_radius": 0.06,
+        "rod_mass": 3.6,
+        "actuated_stiffness": 3150.0,
+        "actuated_damping": 50.0,
+        "passive_stiffness": 1000.0,
+        "passive_damping": 20.0,
+        "pretension": 90.0,
+        "min_fraction": 0.6,
+        "max_fraction": 1.05,
+        "motor_speed": 0.3,
+        "friction": 0.8,
+        "face": "largest",
+        "colors": COLORS,
+        "sensors": sensors(
+            4.0,
+            4.75,
+            0.1,
+            camera([1.5, -5.0, 5.0], [1.5, 0.0, 0.0], 0.3, 15.0),
+            (2.0, 0.3),
+        ),
     }
     rods, cables = prism_topology()
     presets = {

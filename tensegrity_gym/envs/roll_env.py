@@ -86,8 +86,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             names = [self.backend.description.cables[int(k)].name for k in
                      self.backend.description.actuated[bad]]  # fmt: skip
             raise ValueError(
-                f"action entries {bad.tolist()} (cables {names}) are not finite: "
-                f"{a[bad].tolist()}"
+                f"action entries {bad.tolist()} (cables {names}) are not finite: {a[bad].tolist()}"
             )
         return a
 

@@ -14,17 +14,19 @@ from dataclasses import dataclass, field
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
-from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
 
 __all__ = [
     "PRESETS",
-    "CameraConfig",
     "Cable",
     "CableLengthConfig",
+    "CameraConfig",
     "ContactConfig",
     "DescriptionError",
     "EncoderConfig",
@@ -170,9 +172,10 @@ class CameraConfig:
     far: float
     rate: float
     depth_noise: float
-    """Depth noise standard deviation at 1 m (m)."""
+    """Depth noise standard deviation at zero range (m); the total is
+    ``depth_noise + depth_noise_quadratic * depth**2``."""
     depth_noise_quadratic: float
-    """Depth noise growth with the square of the distance (m per m^2)."""
+    """Depth noise growth with the square of the range (m per m^2)."""
 
     @property
     def intrinsics(self) -> NDArray[np.float64]:
@@ -465,8 +468,12 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
     top = r.mapping(doc, "", {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"})
     g = r.mapping(top["ground"], "ground", {"lateral_friction", "rolling_friction", "restitution"})
     ground = Ground(
-        lateral_friction=r.number(g["lateral_friction"], "ground.lateral_friction", non_negative=True),
-        rolling_friction=r.number(g["rolling_friction"], "ground.rolling_friction", non_negative=True),
+        lateral_friction=r.number(
+            g["lateral_friction"], "ground.lateral_friction", non_negative=True
+        ),
+        rolling_friction=r.number(
+            g["rolling_friction"], "ground.rolling_friction", non_negative=True
+        ),
         restitution=r.number(g["restitution"], "ground.restitution", non_negative=True),
     )
 
@@ -532,7 +539,9 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         p = f"cables[{i}]"
         if not isinstance(item, dict):
             raise r.fail(p, f"expected a mapping, got {type(item).__name__}")
-        actuated = r.boolean(item.get("actuated", None), f"{p}.actuated") if "actuated" in item else None
+        actuated = (
+            r.boolean(item.get("actuated", None), f"{p}.actuated") if "actuated" in item else None
+        )
         if actuated is None:
             raise r.fail(f"{p}.actuated", "missing field")
         d = r.mapping(item, p, cable_keys | ({"motor"} if actuated else set()))
@@ -542,7 +551,9 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         rest = r.number(d["rest_length"], f"{p}.rest_length", positive=True)
         motor = None
         if actuated:
-            m = r.mapping(d["motor"], f"{p}.motor", {"min_rest_length", "max_rest_length", "max_speed"})
+            m = r.mapping(
+                d["motor"], f"{p}.motor", {"min_rest_length", "max_rest_length", "max_speed"}
+            )
             lo = r.number(m["min_rest_length"], f"{p}.motor.min_rest_length", positive=True)
             hi = r.number(m["max_rest_length"], f"{p}.motor.max_rest_length", positive=True)
             if not lo <= rest <= hi:
@@ -592,10 +603,13 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
         path = Path(name_or_path)
         source = str(path)
         if not path.is_file():
-            raise DescriptionError(
-                f"{source}: no such file (presets are {', '.join(PRESETS)})"
-            )
-        text = path.read_text()
+            raise DescriptionError(f"{source}: no such file (presets are {', '.join(PRESETS)})")
+        try:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as err:
+            raise DescriptionError(f"{source}: not valid YAML: not UTF-8 text ({err})") from err
+        except OSError as err:
+            raise DescriptionError(f"{source}: cannot be read: {err}") from err
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as err:

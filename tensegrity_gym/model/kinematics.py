@@ -65,7 +65,11 @@ def quaternion_rotate(q: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray
     ty = 2.0 * (z * vx - x * vz)
     tz = 2.0 * (x * vy - y * vx)
     return np.stack(
-        [vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz, vz + w * tz + x * ty - y * tx],
+        [
+            vx + w * tx + y * tz - z * ty,
+            vy + w * ty + z * tx - x * tz,
+            vz + w * tz + x * ty - y * tx,
+        ],
         axis=-1,
     )
 

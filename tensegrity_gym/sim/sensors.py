@@ -53,7 +53,7 @@ SPEED_OF_LIGHT = 299_792_458.0
 
 
 def _conjugate(q: NDArray[np.float64]) -> NDArray[np.float64]:
-    return q * np.array([-1.0, -1.0, -1.0, 1.0])
+    return np.asarray(q * np.array([-1.0, -1.0, -1.0, 1.0]), dtype=np.float64)
 
 
 class SensorSchedule:
@@ -97,7 +97,7 @@ class ImuModel:
         settings.gyroscope_range = 2000.0
         settings.acceleration_rejection = 10.0
         settings.magnetic_rejection = 10.0
-        settings.sample_rate = int(round(self.config.rate))
+        settings.sample_rate = round(self.config.rate)
         settings.rejection_timeout = int(5 * self.config.rate)
         ahrs = imufusion.Ahrs()
         ahrs.set_settings(settings)
@@ -115,7 +115,9 @@ class ImuModel:
         n = int(warmup * c.rate)
         q = np.asarray(snap.rod_quaternions, dtype=np.float64)
         still = np.zeros((1, self.n_rods, 3))
-        accel, gyro, mag = self._measure(q[None], still, still, rng.standard_normal((n, self.n_rods, 9)))
+        accel, gyro, mag = self._measure(
+            q[None], still, still, rng.standard_normal((n, self.n_rods, 9))
+        )
         for k in range(n):
             for r, ahrs in enumerate(self.ahrs):
                 ahrs.update(np.degrees(gyro[k, r]), accel[k, r] / 9.81, mag[k, r])
@@ -166,7 +168,9 @@ class ImuModel:
                 ahrs.update(gyro_deg[k, r], accel_g[k, r], mag[k, r])
                 wxyz = ahrs.get_quaternion()
                 ahrs_out.append(
-                    AhrsSample(tk, r, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]]))
+                    AhrsSample(
+                        tk, r, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]], dtype=np.float64)
+                    )
                 )
         return imu, ahrs_out
 
@@ -197,7 +201,9 @@ class CableLengthModel:
         self.config = config
         self.pairs = description.cable_nodes
 
-    def sample(self, snaps: Sequence[Snapshot], rng: np.random.Generator) -> list[CableLengthSample]:
+    def sample(
+        self, snaps: Sequence[Snapshot], rng: np.random.Generator
+    ) -> list[CableLengthSample]:
         if not snaps:
             return []
         nodes = np.array([s.node_positions for s in snaps])
@@ -236,7 +242,7 @@ class UwbModel:
     offset o_ij. Robot module pairs give two measurements a round, anchor-module pairs one.
     A share of packets (drawn per episode) is rejected as non-line-of-sight.
 
-    The module positions are taken at the start of the round: a round lasts a few tens of
+    The module positions are taken at the end of the round: a round lasts a few tens of
     milliseconds, over which the robot moves by millimetres.
     """
 
@@ -301,10 +307,10 @@ class UwbModel:
             d = t_sf - t_rr  # eq. 4
             m = 0.5 * SPEED_OF_LIGHT * (cc - d * b / a)  # eq. 6: m_{j,i}
             keep = rng.random(len(i)) >= self.reject_fraction
-            times = snap.t + t_final[keep] + s
-            out.append(
-                UwbRangeSample(snap.t, times, self.pairs[keep], m[keep])
-            )
+            # The snapshot closes the round: each measurement is stamped when its final
+            # message arrives, so all of a round's times lie within it, none in the future.
+            times = np.asarray(snap.t - 3 * N * s + t_final[keep] + s, dtype=np.float64)
+            out.append(UwbRangeSample(snap.t, times, self.pairs[keep], m[keep]))
         return out
 
 

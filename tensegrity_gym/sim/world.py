@@ -193,7 +193,7 @@ class PhysicsWorld:
         x, _ = self.node_states()
         self._cable_lengths = member_lengths(x, self.description.cable_nodes).tolist()
 
-    def set_rest_lengths(self, rest_lengths: Sequence[float]) -> None:
+    def set_rest_lengths(self, rest_lengths: Sequence[float] | NDArray[np.float64]) -> None:
         """Set all cables' rest lengths (m); actuated targets follow."""
         self.rest_lengths = [float(x) for x in rest_lengths]
         self.targets = [self.rest_lengths[k] for k in self._actuated]
@@ -358,6 +358,30 @@ class PhysicsWorld:
                 snapshots.append(self.snapshot())
         return snapshots
 
+    def step_bare(self, n_steps: int) -> None:
+        """Step PyBullet alone, no cables: the speed ceiling the benchmark compares with."""
+        for _ in range(n_steps):
+            pybullet.stepSimulation(physicsClientId=self.client)
+
+    def save_state(self) -> tuple[int, list[float], list[float], list[float], float]:
+        """An in-memory checkpoint of the bodies, motors and clock."""
+        state = pybullet.saveState(physicsClientId=self.client)
+        return (
+            state,
+            list(self.rest_lengths),
+            list(self.targets),
+            list(self._cable_lengths),
+            self.time,
+        )
+
+    def restore_state(
+        self, checkpoint: tuple[int, list[float], list[float], list[float], float]
+    ) -> None:
+        state, rest, targets, lengths, t = checkpoint
+        pybullet.restoreState(state, physicsClientId=self.client)
+        self.rest_lengths, self.targets = list(rest), list(targets)
+        self._cable_lengths, self.time = list(lengths), t
+
     def snapshot(self) -> Snapshot:
         pos, orn, lin, ang = self.rod_states()
         nodes: list[list[float]] = [[0.0, 0.0, 0.0] for _ in range(self.description.n_nodes)]
@@ -376,9 +400,20 @@ class PhysicsWorld:
     # ------------------------------------------------------------------ rendering
 
     def camera_image(
-        self, camera: CameraConfig, width: int | None = None, height: int | None = None
+        self,
+        camera: CameraConfig,
+        width: int | None = None,
+        height: int | None = None,
+        segments: Sequence[
+            tuple[NDArray[np.float64], NDArray[np.float64], tuple[int, int, int]]
+        ] = (),
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
-        """RGB (H, W, 3) and metric depth along the optical axis (H, W) from ``camera``."""
+        """RGB (H, W, 3) and metric depth along the optical axis (H, W) from ``camera``.
+
+        ``segments`` are (start (3,), end (3,), colour) lines drawn over the colour image
+        for people (cables, a ground grid); TinyRenderer cannot draw lines itself. They
+        are hidden where the scene is nearer to the camera.
+        """
         w = width or camera.width
         h = height or camera.height
         view = pybullet.computeViewMatrix(
@@ -400,6 +435,22 @@ class PhysicsWorld:
         zb = np.asarray(depth_buffer, dtype=np.float64).reshape(h, w)
         near, far = camera.near, camera.far
         depth = (far * near / (far - (far - near) * zb)).astype(np.float32)
+        if segments:
+            # Matrices are column-major 4x4 lists.
+            clip_from_world = np.asarray(proj).reshape(4, 4).T @ np.asarray(view).reshape(4, 4).T
+            for start, end, colour in segments:
+                n = 400
+                pts = start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
+                clip = np.c_[pts, np.ones(n)] @ clip_from_world.T
+                front = clip[:, 3] > 1e-6
+                ndc = clip[front, :3] / clip[front, 3:4]
+                u = ((ndc[:, 0] + 1.0) * 0.5 * w).astype(int)
+                v = ((1.0 - ndc[:, 1]) * 0.5 * h).astype(int)
+                zbuf = 0.5 * (ndc[:, 2] + 1.0)
+                ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+                u, v, zbuf = u[ok], v[ok], zbuf[ok]
+                seen = zbuf <= zb[v, u] + 1e-4
+                rgb[v[seen], u[seen]] = colour
         return rgb, depth
 
     def close(self) -> None:

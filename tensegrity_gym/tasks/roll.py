@@ -110,15 +110,15 @@ class RollTask:
         return out
 
     def observation(self, estimate: Estimate) -> NDArray[np.float32]:
-        rel = self._to_goal_frame(estimate.node_positions - estimate.com) / self.scale
-        vel = self._to_goal_frame(estimate.node_velocities) / self.scale
-        rest = 2.0 * (estimate.rest_lengths - self._rest_lo) / self._rest_span - 1.0
+        with np.errstate(invalid="ignore", over="ignore"):  # non-finite input is cleaned below
+            rel = self._to_goal_frame(estimate.node_positions - estimate.com) / self.scale
+            vel = self._to_goal_frame(estimate.node_velocities) / self.scale
+            rest = 2.0 * (estimate.rest_lengths - self._rest_lo) / self._rest_span - 1.0
         obs = np.concatenate([rel.ravel(), vel.ravel(), rest, self.direction])
         # nan_to_num first: a policy never sees NaN, whatever the estimator did.
         obs = np.nan_to_num(obs, nan=0.0, posinf=0.0, neginf=0.0)
-        return np.clip(
-            obs, self.observation_space.low, self.observation_space.high
-        ).astype(np.float32)
+        bounded = np.clip(obs, self.observation_space.low, self.observation_space.high)
+        return np.asarray(bounded, dtype=np.float32)
 
     def decode(self, observation: NDArray[np.float32]) -> RollObservation:
         parts = np.split(np.asarray(observation), np.cumsum(self._sizes)[:-1])
@@ -134,9 +134,7 @@ class RollTask:
         """Distance (m) the CoM has moved along the goal heading since the reset."""
         return float((estimate.com[:2] - self.start[:2]) @ self.direction)
 
-    def reward(
-        self, previous: Estimate, estimate: Estimate, action: NDArray[np.float32]
-    ) -> float:
+    def reward(self, previous: Estimate, estimate: Estimate, action: NDArray[np.float32]) -> float:
         step = float((estimate.com[:2] - previous.com[:2]) @ self.direction)
         cost = self.ctrl_cost * float(np.mean(np.square(action)))
         return self.progress_weight * step / self.scale - cost

@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# Lint, type-check and run the default test suite (slow tests excluded: -m slow runs them).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+python -m ruff check .
+python -m ruff format --check .
+python -m mypy tensegrity_gym estimation hardware agents
+# pytest exits 5 when it collects nothing: that fails this script, as it should.
+python -m pytest -n 2 -q "$@"

@@ -1,0 +1,107 @@
+"""The layer rules of DESIGN.md: imports go one way, and only the sim imports pybullet."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("tensegrity_gym", "estimation", "hardware", "agents")
+
+# Which project packages each part may import (itself always allowed).
+ALLOWED: dict[str, set[str]] = {
+    "tensegrity_gym": set(),  # the package __init__: registration only
+    "tensegrity_gym.model": set(),
+    "tensegrity_gym.sim": {"tensegrity_gym.model"},
+    "estimation": {"tensegrity_gym.model"},
+    "hardware": {"tensegrity_gym.model"},
+    "hardware.emulator": {"tensegrity_gym.model", "tensegrity_gym.sim"},
+    "tensegrity_gym.envs": {
+        "tensegrity_gym.model", "tensegrity_gym.sim", "tensegrity_gym.tasks",
+        "estimation", "hardware",
+    },
+    "tensegrity_gym.tasks": {
+        "tensegrity_gym.model", "tensegrity_gym.sim", "estimation", "hardware",
+    },
+    "agents": {"tensegrity_gym", "estimation", "hardware"},
+}  # fmt: skip
+
+
+def _part(module: str) -> str:
+    """The most specific key of ALLOWED that contains ``module``."""
+    best = ""
+    for key in ALLOWED:
+        if (module == key or module.startswith(key + ".")) and len(key) > len(best):
+            best = key
+    return best
+
+
+def _modules() -> list[tuple[str, Path]]:
+    out = []
+    for pkg in PACKAGES:
+        for file in sorted((ROOT / pkg).rglob("*.py")):
+            rel = file.relative_to(ROOT).with_suffix("")
+            parts = list(rel.parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out.append((".".join(parts), file))
+    return out
+
+
+def _imports(file: Path) -> list[str]:
+    tree = ast.parse(file.read_text())
+    names = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.append(node.module)
+    return names
+
+
+MODULES = _modules()
+
+
+def test_every_package_is_scanned() -> None:
+    found = {name.split(".")[0] for name, _ in MODULES}
+    assert found == set(PACKAGES)
+
+
+@pytest.mark.parametrize(("module", "file"), MODULES, ids=[m for m, _ in MODULES])
+def test_imports_go_one_way(module: str, file: Path) -> None:
+    part = _part(module)
+    assert part, f"{module} belongs to no layer"
+    allowed = ALLOWED[part] | {part}
+    for name in _imports(file):
+        top = name.split(".")[0]
+        if top not in PACKAGES:
+            continue
+        target = _part(name) or name
+        if module == "tensegrity_gym" or target == "tensegrity_gym":
+            # The package __init__ imports nothing of ours; others may import the
+            # package itself (it only registers envs).
+            assert module != "tensegrity_gym", f"tensegrity_gym/__init__ imports {name}"
+            continue
+        ok = any(target == a or target.startswith(a + ".") for a in allowed)
+        assert ok, f"{module} ({part}) may not import {name} ({target})"
+
+
+def test_only_the_sim_world_imports_pybullet() -> None:
+    users = [m for m, f in MODULES if any(n.split(".")[0] == "pybullet" for n in _imports(f))]
+    assert users == ["tensegrity_gym.sim.world"]
+
+
+def test_nothing_imports_agents() -> None:
+    for module, file in MODULES:
+        if module.startswith("agents"):
+            continue
+        assert not any(n.split(".")[0] == "agents" for n in _imports(file)), module
+
+
+def test_a_wrong_way_import_is_caught(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.py"
+    bad.write_text("from tensegrity_gym.sim.world import PhysicsWorld\n")
+    name = _imports(bad)[0]
+    assert _part(name) not in ALLOWED["estimation"] | {"estimation"}
