@@ -174,7 +174,14 @@ def description(
     return {
         "name": name,
         "gravity": 9.81,
-        "ground": {"lateral_friction": p["friction"], "rolling_friction": 0.0, "restitution": 0.0},
+        # Some rolling and spinning resistance at the endcaps: with none, a rod rolls
+        # about its own axis without loss and the resting robot never comes to rest.
+        "ground": {
+            "lateral_friction": p["friction"],
+            "rolling_friction": round(0.005 * p["rod_length"], 5),
+            "spinning_friction": round(0.005 * p["rod_length"], 5),
+            "restitution": 0.0,
+        },
         "nodes": [
             {"name": n, "position": [round(float(v), 6) for v in x]}
             for n, x in zip(node_names, nodes, strict=True)

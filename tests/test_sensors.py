@@ -214,9 +214,7 @@ def test_samples_are_time_ordered_within_each_step(rest: RestRun) -> None:
         assert np.all(times <= t1 + 1e-9)
 
 
-def test_uwb_measurement_times_lie_within_their_round(
-    rest: RestRun, d: RobotDescription
-) -> None:
+def test_uwb_measurement_times_lie_within_their_round(rest: RestRun, d: RobotDescription) -> None:
     cfg = d.sensors.uwb
     n_modules = d.n_nodes + len(cfg.anchors)
     round_length = 3 * n_modules * cfg.packet_spacing  # poll, response, final per module

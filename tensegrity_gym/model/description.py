@@ -96,6 +96,9 @@ class Cable:
 class Ground:
     lateral_friction: float
     rolling_friction: float
+    """Rolling resistance (m): the torque is this times the normal force."""
+    spinning_friction: float
+    """Resistance to spinning about the contact normal (m), as rolling_friction."""
     restitution: float
 
 
@@ -466,15 +469,16 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
     """Validate a parsed YAML document and build the description from it."""
     r = _Reader(source)
     top = r.mapping(doc, "", {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"})
-    g = r.mapping(top["ground"], "ground", {"lateral_friction", "rolling_friction", "restitution"})
+    g = r.mapping(
+        top["ground"],
+        "ground",
+        {"lateral_friction", "rolling_friction", "spinning_friction", "restitution"},
+    )
     ground = Ground(
-        lateral_friction=r.number(
-            g["lateral_friction"], "ground.lateral_friction", non_negative=True
-        ),
-        rolling_friction=r.number(
-            g["rolling_friction"], "ground.rolling_friction", non_negative=True
-        ),
-        restitution=r.number(g["restitution"], "ground.restitution", non_negative=True),
+        *(
+            r.number(g[key], f"ground.{key}", non_negative=True)
+            for key in ("lateral_friction", "rolling_friction", "spinning_friction", "restitution")
+        )
     )
 
     nodes: list[Node] = []

@@ -113,6 +113,7 @@ class PhysicsWorld:
             -1,
             lateralFriction=d.ground.lateral_friction,
             rollingFriction=d.ground.rolling_friction,
+            spinningFriction=d.ground.spinning_friction,
             restitution=d.ground.restitution,
             physicsClientId=c,
         )
@@ -140,6 +141,7 @@ class PhysicsWorld:
                 -1,
                 lateralFriction=d.ground.lateral_friction,
                 rollingFriction=d.ground.rolling_friction,
+                spinningFriction=d.ground.spinning_friction,
                 restitution=d.ground.restitution,
                 linearDamping=0.0,
                 angularDamping=0.0,
