@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ESTIMATORS", "make_estimator", "make_roll_env"]
 
-ESTIMATORS = ("oracle",)
+ESTIMATORS = ("oracle", "ukf")
 """Estimator names ``make`` accepts; more join as they are implemented."""
 
 
@@ -35,13 +35,17 @@ def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
         if backend.ground_truth is None:  # pragma: no cover - every backend has the method
             raise ValueError("estimator='oracle' needs a backend with ground truth")
         return OracleEstimator(backend.ground_truth)
+    if name == "ukf":
+        from estimation.ukf import UkfEstimator
+
+        return UkfEstimator()
     raise ValueError(f"unknown estimator {name!r}; valid choices: {list(ESTIMATORS)}")
 
 
 def make_roll_env(
     robot: str | Path | RobotDescription = "three_bar",
     *,
-    estimator: str | Estimator = "oracle",
+    estimator: str | Estimator = "ukf",
     driver: Any = None,
     render_mode: str | None = None,
     goal_heading: float | None = 0.0,
@@ -55,7 +59,8 @@ def make_roll_env(
 
     Args:
         robot: a preset name, a YAML path or a loaded description.
-        estimator: ``"oracle"`` (ground truth, simulation only) or an Estimator object.
+        estimator: ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
+            ``"oracle"`` (ground truth, simulation only) or an Estimator object.
         driver: ``None`` for the PyBullet simulation. Hardware drivers are not part of
             this release; anything else is rejected.
         render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (PyBullet's window).

@@ -1,0 +1,462 @@
+"""The UKF of papers/000 as an :class:`Estimator`: samples and commands in, estimate out.
+
+Each control period the filter predicts the spring-mass net forward with the motor
+encoders' rest lengths as its input, then corrects it with what arrived: rod axes from
+the AHRS, UWB ranges minus the pair offsets, cable lengths, and the rod-length and
+ground-contact pseudo-measurements. Outliers are gated; a filter that diverges
+re-initialises itself from recent samples and says so in the estimate.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from estimation.ukf.filter import UnscentedKalmanFilter, UpdateResult, single_threaded_blas
+from estimation.ukf.initialise import InitialisationError, fit_initial_shape
+from estimation.ukf.measurements import (
+    MeasurementBatch,
+    MeasurementModel,
+    RowKind,
+    ahrs_axis,
+)
+from estimation.ukf.sigma_points import CholeskyError, SigmaPointParams
+from estimation.ukf.spring_mass import SpringMassModel, SpringMassParams
+from tensegrity_gym.model.estimate import Estimate
+from tensegrity_gym.model.kinematics import center_of_mass, member_lengths
+from tensegrity_gym.model.samples import (
+    AhrsSample,
+    CableLengthSample,
+    ContactSample,
+    EncoderSample,
+    UwbRangeSample,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.samples import Sample
+
+__all__ = ["UkfConfig", "UkfDiagnostics", "UkfEstimator"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class UkfConfig:
+    """Everything that tunes the filter. Lengths scale with the robot where noted.
+
+    Noise is given as standard deviations; the filter squares them.
+    """
+
+    sigma_points: SigmaPointParams = field(default_factory=SigmaPointParams)
+    model: SpringMassParams = field(default_factory=SpringMassParams)
+    position_noise: float = 0.02
+    """Process noise on node positions: std per sqrt(s), in rod lengths."""
+    velocity_noise: float = 0.5
+    """Process noise on node velocities: std per sqrt(s), in rod lengths per s."""
+    axis_sigma: float = 0.04
+    """Std of each component of an AHRS rod axis (unit vector, ~ rad)."""
+    range_sigma: float = 0.03
+    """Std of a UWB range (m)."""
+    cable_sigma: float = 0.03
+    """Std of a cable-length sensor (m); slack cables read long, the gate drops them."""
+    rod_length_sigma: float = 0.002
+    """Std of the rod-length pseudo-measurement, in rod lengths."""
+    contact_sigma: float = 0.005
+    """Std of the height of an endcap in contact with the ground (m)."""
+    use_imu: bool = True
+    use_ranges: bool = True
+    use_robot_ranges: bool = True
+    """Node-node ranges as well as node-anchor ones."""
+    use_cable_lengths: bool = True
+    use_contacts: bool = True
+    anchors: tuple[int, ...] | None = None
+    """Indices of the anchors to use (ablations: 4 of 8); None uses all."""
+    constant_offset: bool = False
+    """One offset (the mean of the calibration's) for every pair instead of o_ij."""
+    gate_probability: float | None = 0.9999
+    """Chi-square gate on each measurement group; None turns gating off."""
+    initial_position_sigma: float = 0.1
+    """Std of the initial node positions, in rod lengths."""
+    initial_velocity_sigma: float = 0.05
+    """Std of the initial node velocities (m/s), in rod lengths per s."""
+    initial_positions: tuple[tuple[float, float, float], ...] | None = None
+    """Start from these node positions (m) instead of fitting them to the first samples."""
+    range_window: float = 0.5
+    """Seconds of ranges kept for re-initialisation."""
+    divergence_nis: float = 25.0
+    """Mean NIS per accepted row over ``divergence_window`` updates that counts as
+    divergence."""
+    divergence_window: int = 5
+    divergence_rod_strain: float = 0.25
+    """A rod estimated this much longer or shorter (share of its length) is divergence."""
+
+    def __post_init__(self) -> None:
+        positive = (
+            "position_noise", "velocity_noise", "axis_sigma", "range_sigma", "cable_sigma",
+            "rod_length_sigma", "contact_sigma", "initial_position_sigma",
+            "initial_velocity_sigma", "range_window", "divergence_nis",
+            "divergence_rod_strain",
+        )  # fmt: skip
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"UkfConfig.{name} must be positive, got {value}")
+        if self.gate_probability is not None and not 0.5 < self.gate_probability < 1:
+            raise ValueError(
+                f"UkfConfig.gate_probability must lie in (0.5, 1) or be None, "
+                f"got {self.gate_probability}"
+            )
+        if self.divergence_window < 1:
+            raise ValueError("UkfConfig.divergence_window must be at least 1")
+
+
+@dataclass
+class UkfDiagnostics:
+    """Counters a user or a test reads after the fact."""
+
+    updates: int = 0
+    rows: int = 0
+    rejected_rows: int = 0
+    rejected_by_kind: dict[str, int] = field(default_factory=dict)
+    reinitialisations: int = 0
+    jitter_events: int = 0
+    last_update: UpdateResult | None = None
+    nis_history: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+
+
+class UkfEstimator:
+    """The unscented Kalman filter over the spring-mass net (papers/000, section IV).
+
+    Args:
+        config: tuning; defaults work for the presets.
+    """
+
+    needs_camera = False
+
+    def __init__(self, config: UkfConfig | None = None) -> None:
+        self.config = config if config is not None else UkfConfig()
+        self.diagnostics = UkfDiagnostics()
+        self._ready = False
+
+    # ------------------------------------------------------------------ set-up
+
+    def reset(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+        command: NDArray[np.float64],
+        rng: np.random.Generator,
+    ) -> Estimate:
+        """Start from the first samples (or ``config.initial_positions``).
+
+        ``rng`` is unused: the filter is deterministic given its samples.
+        """
+        with single_threaded_blas():
+            return self._reset(description, calibration, samples, command)
+
+    def _reset(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+        command: NDArray[np.float64],
+    ) -> Estimate:
+        c = self.config
+        d = description
+        self.description = d
+        self.model = SpringMassModel(d, c.model)
+        anchors = np.asarray(calibration.anchors, dtype=np.float64).reshape(-1, 3)
+        self.measurements = MeasurementModel(d, anchors, d.sensors.uwb.module_offset)
+        n = d.n_nodes
+        n_modules = n + len(anchors)
+        offsets = np.asarray(calibration.uwb_offsets, dtype=np.float64)
+        if offsets.shape != (n_modules, n_modules):
+            raise ValueError(
+                f"calibration.uwb_offsets has shape {offsets.shape}, expected "
+                f"{(n_modules, n_modules)} for {n} nodes and {len(anchors)} anchors"
+            )
+        if c.constant_offset:
+            off_diag = ~np.eye(n_modules, dtype=bool)
+            offsets = np.where(off_diag, offsets[off_diag].mean(), 0.0)
+        self.offsets = offsets
+        allowed = np.ones(n_modules, dtype=bool)
+        if c.anchors is not None:
+            bad = [a for a in c.anchors if not 0 <= a < len(anchors)]
+            if bad:
+                raise ValueError(
+                    f"UkfConfig.anchors names anchors {bad}; the scene has {len(anchors)}"
+                )
+            allowed[n:] = False
+            allowed[[n + a for a in c.anchors]] = True
+        self._module_allowed = allowed
+        L = d.characteristic_length
+        self._q_pos = (c.position_noise * L) ** 2
+        self._q_vel = (c.velocity_noise * L) ** 2
+        self._rest = np.asarray(command, dtype=np.float64).copy()
+        self._ranges: deque[UwbRangeSample] = deque()
+        # Readings not yet used by an update, and the latest of each for re-initialising.
+        self._axes: dict[int, NDArray[np.float64]] = {}
+        self._cables: NDArray[np.float64] | None = None
+        self._contacts: NDArray[np.intp] | None = None
+        self._latest_axes: dict[int, NDArray[np.float64]] = {}
+        self._latest_cables: NDArray[np.float64] | None = None
+        self._latest_contacts: NDArray[np.intp] | None = None
+        self._t = max((s.t for s in samples), default=0.0)
+        self.diagnostics = UkfDiagnostics()
+        self._absorb(samples)
+        if c.initial_positions is not None:
+            nodes = np.asarray(c.initial_positions, dtype=np.float64)
+            if nodes.shape != (n, 3):
+                raise ValueError(
+                    f"UkfConfig.initial_positions has shape {nodes.shape}, expected {(n, 3)}"
+                )
+        else:
+            nodes = self._fit()
+        self._start(nodes)
+        self._ready = True
+        return self._estimate(reinitialised=False)
+
+    def _fit(self) -> NDArray[np.float64]:
+        c = self.config
+        pairs, ranges = self._recent_ranges()
+        return fit_initial_shape(
+            self.description,
+            self.measurements,
+            axes=self._latest_axes if c.use_imu else {},
+            range_pairs=pairs,
+            ranges=ranges - self.offsets[pairs[:, 0], pairs[:, 1]],
+            range_sigma=c.range_sigma,
+            axis_sigma=c.axis_sigma,
+            cable_lengths=self._latest_cables if c.use_cable_lengths else None,
+            cable_sigma=c.cable_sigma,
+            contact_nodes=self._latest_contacts if c.use_contacts else None,
+        ).node_positions
+
+    def _start(self, nodes: NDArray[np.float64]) -> None:
+        c = self.config
+        n = self.description.n_nodes
+        L = self.description.characteristic_length
+        x = np.concatenate([nodes.ravel(), np.zeros(3 * n)])
+        P = np.diag(
+            np.concatenate(
+                [
+                    np.full(3 * n, (c.initial_position_sigma * L) ** 2),
+                    np.full(3 * n, (c.initial_velocity_sigma * L) ** 2),
+                ]
+            )
+        )
+        self.filter = UnscentedKalmanFilter(x, P, c.sigma_points)
+        self._nis_window: deque[float] = deque(maxlen=c.divergence_window)
+
+    # ------------------------------------------------------------------ samples
+
+    def _absorb(self, samples: Sequence[Sample]) -> tuple[list[UwbRangeSample], bool]:
+        """Keep the latest of each sensor; return this period's UWB rounds and whether
+        an encoder reading arrived."""
+        rounds: list[UwbRangeSample] = []
+        encoder = False
+        latest_ahrs: dict[int, AhrsSample] = {}
+        for s in samples:
+            if isinstance(s, AhrsSample):
+                latest_ahrs[s.rod] = s  # only the newest orientation of a rod is used
+            elif isinstance(s, UwbRangeSample):
+                rounds.append(s)
+                self._ranges.append(s)
+            elif isinstance(s, EncoderSample):
+                if np.all(np.isfinite(s.rest_lengths)):
+                    self._rest = np.asarray(s.rest_lengths, dtype=np.float64)
+                    encoder = True
+            elif isinstance(s, CableLengthSample):
+                self._cables = np.asarray(s.lengths, dtype=np.float64)
+                self._latest_cables = self._cables
+            elif isinstance(s, ContactSample):
+                self._contacts = np.flatnonzero(s.in_contact).astype(np.intp)
+                self._latest_contacts = self._contacts
+        for rod, sample in latest_ahrs.items():
+            q = np.asarray(sample.quaternion, dtype=np.float64)
+            norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
+            if np.isfinite(norm) and norm > 0.5:
+                self._axes[rod] = ahrs_axis(q / norm)
+                self._latest_axes[rod] = self._axes[rod]
+        if samples:
+            self._t = max(self._t, max(s.t for s in samples))
+        while self._ranges and self._ranges[0].t < self._t - self.config.range_window:
+            self._ranges.popleft()
+        return rounds, encoder
+
+    def _select_ranges(
+        self, rounds: Sequence[UwbRangeSample]
+    ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+        if not rounds:
+            return np.zeros((0, 2), dtype=np.intp), np.zeros(0)
+        pairs = np.concatenate([np.asarray(r.pairs, dtype=np.intp).reshape(-1, 2) for r in rounds])
+        ranges = np.concatenate([np.asarray(r.ranges, dtype=np.float64) for r in rounds])
+        n_modules = len(self._module_allowed)
+        keep = (
+            np.isfinite(ranges)
+            & (pairs >= 0).all(axis=1)
+            & (pairs < n_modules).all(axis=1)
+            & (pairs[:, 0] != pairs[:, 1])
+        )
+        pairs, ranges = pairs[keep], ranges[keep]
+        keep = self._module_allowed[pairs].all(axis=1)
+        if not self.config.use_robot_ranges:
+            keep &= (pairs >= self.description.n_nodes).any(axis=1)
+        return pairs[keep], ranges[keep]
+
+    def _recent_ranges(self) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+        return self._select_ranges(list(self._ranges))
+
+    # ------------------------------------------------------------------ filtering
+
+    def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
+        """Predict over the time the samples span, then correct with them."""
+        if not self._ready:
+            raise RuntimeError("call reset() before update()")
+        with single_threaded_blas():
+            return self._update(samples, command)
+
+    def _update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
+        c = self.config
+        t_before = self._t
+        rest_before = self._rest.copy()
+        rounds, encoder = self._absorb(samples)
+        if not encoder and np.all(np.isfinite(command)):
+            # No encoder reading this period: trust that the motors follow the command.
+            self._rest = np.asarray(command, dtype=np.float64)
+        dt = self._t - t_before
+        try:
+            if dt > 0:
+                Q = np.diag(
+                    np.concatenate(
+                        [
+                            np.full(3 * self.description.n_nodes, self._q_pos * dt),
+                            np.full(3 * self.description.n_nodes, self._q_vel * dt),
+                        ]
+                    )
+                )
+                rest_after = self._rest
+
+                def fx(sigmas: NDArray[np.float64]) -> NDArray[np.float64]:
+                    return self.model.propagate(sigmas, dt, rest_before, rest_after)
+
+                self.filter.predict(fx, Q)
+            batch = self._batch(rounds)
+            result = self.filter.update(
+                batch.z,
+                batch.variance,
+                lambda sig: self.measurements.predict(batch, sig),
+                batch.groups,
+                c.gate_probability,
+            )
+        except (CholeskyError, np.linalg.LinAlgError, FloatingPointError) as err:
+            log.warning("UKF numerics failed (%s); re-initialising", err)
+            return self._reinitialise()
+        self._record(batch.kind, result)
+        if self._diverged(result):
+            return self._reinitialise()
+        return self._estimate(reinitialised=False)
+
+    def _batch(self, rounds: Sequence[UwbRangeSample]) -> MeasurementBatch:
+        c = self.config
+        pairs, ranges = self._select_ranges(rounds) if c.use_ranges else (None, None)
+        offsets = None if pairs is None else self.offsets[pairs[:, 0], pairs[:, 1]]
+        L = self.description.characteristic_length
+        batch = self.measurements.batch(
+            axes=self._axes if c.use_imu else None,
+            axis_variance=c.axis_sigma**2,
+            range_pairs=pairs,
+            ranges=ranges,
+            range_offsets=offsets,
+            range_variance=c.range_sigma**2,
+            cable_lengths=self._cables if c.use_cable_lengths else None,
+            cable_variance=c.cable_sigma**2,
+            rod_variance=(c.rod_length_sigma * L) ** 2,
+            contact_nodes=self._contacts if c.use_contacts else None,
+            contact_variance=c.contact_sigma**2,
+        )
+        # Each reading is used once: the next update waits for fresh ones.
+        self._axes = {}
+        self._cables = None
+        self._contacts = None
+        return batch
+
+    def _record(self, kinds: NDArray[np.int8], result: UpdateResult) -> None:
+        diag = self.diagnostics
+        diag.updates += 1
+        diag.rows += result.n_measurements
+        diag.rejected_rows += result.n_rejected
+        for k in np.unique(kinds[~result.accepted]):
+            name = RowKind(int(k)).name.lower()
+            diag.rejected_by_kind[name] = diag.rejected_by_kind.get(name, 0) + int(
+                np.count_nonzero(kinds[~result.accepted] == k)
+            )
+        if result.jitter > 0:
+            diag.jitter_events += 1
+        diag.last_update = result
+        accepted = int(np.count_nonzero(result.accepted))
+        if accepted:
+            nis = result.nis / accepted
+            diag.nis_history.append(nis)
+            self._nis_window.append(nis)
+
+    def _diverged(self, result: UpdateResult) -> bool:
+        c = self.config
+        x, P = self.filter.x, self.filter.P
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+            return True
+        d = self.description
+        nodes = x[: 3 * d.n_nodes].reshape(-1, 3)
+        rod_len = np.array([r.length for r in d.rods])
+        strain = np.abs(member_lengths(nodes, d.rod_nodes) / rod_len - 1.0)
+        if np.any(strain > c.divergence_rod_strain):
+            return True
+        if np.max(np.diag(P)[: 3 * d.n_nodes]) > (10.0 * d.characteristic_length) ** 2:
+            return True
+        window = self._nis_window
+        return len(window) == window.maxlen and float(np.mean(window)) > c.divergence_nis
+
+    def _reinitialise(self) -> Estimate:
+        self.diagnostics.reinitialisations += 1
+        try:
+            nodes = self._fit()
+        except (InitialisationError, ValueError, np.linalg.LinAlgError) as err:
+            log.warning("UKF re-initialisation failed (%s); keeping the last estimate", err)
+            x = self.filter.x
+            if not np.all(np.isfinite(x)):
+                # Nothing finite to fall back on: the resting shape where the CoM was.
+                nodes = self.description.initial_positions
+            else:
+                nodes = x[: 3 * self.description.n_nodes].reshape(-1, 3)
+            self._start(nodes)
+            return replace(self._estimate(reinitialised=True), healthy=False)
+        self._start(nodes)
+        return self._estimate(reinitialised=True)
+
+    def _estimate(self, *, reinitialised: bool) -> Estimate:
+        d = self.description
+        n = d.n_nodes
+        x = self.filter.x
+        nodes = x[: 3 * n].reshape(n, 3).copy()
+        velocities = x[3 * n :].reshape(n, 3).copy()
+        return Estimate(
+            t=self._t,
+            node_positions=nodes,
+            node_velocities=velocities,
+            com=center_of_mass(nodes, d.node_masses),
+            rest_lengths=self._rest.copy(),
+            covariance=self.filter.P.copy(),
+            healthy=not reinitialised,
+            reinitialised=reinitialised,
+        )
