@@ -72,7 +72,7 @@ def bench_env_speed(
 
 def bench_memory(env_id: str, steps: int, seed: int = 0) -> dict[str, Any]:
     """Growth of the process (MB) over ``steps`` env steps with episodes resetting."""
-    env = gym.make(env_id)
+    env = gym.make(env_id, estimator="ukf")
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     shape = env.action_space.shape
@@ -102,7 +102,11 @@ def bench_memory(env_id: str, steps: int, seed: int = 0) -> dict[str, Any]:
     }
 
 
-def run_benchmarks(speed_steps: int = 2000, memory_steps: int = 100_000) -> dict[str, Any]:
+def run_benchmarks(
+    speed_steps: int = 2000, memory_steps: int = 100_000, estimation: bool = False
+) -> dict[str, Any]:
+    """Env speed (oracle and UKF) and memory; with ``estimation``, also the estimation
+    study and the UKF's speed against filterpy's (:mod:`agents.bench_estimation`)."""
     results: dict[str, Any] = {
         "machine": {
             "platform": platform.platform(),
@@ -113,13 +117,32 @@ def run_benchmarks(speed_steps: int = 2000, memory_steps: int = 100_000) -> dict
         "speed": [
             bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps),
             bench_env_speed("tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100)),
+            bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps, estimator="ukf"),
+            bench_env_speed(
+                "tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100), estimator="ukf"
+            ),
         ],
         "targets": {
             "tensegrity_gym/ThreeBarRoll-v0 oracle env_steps_per_s": 400,
             "tensegrity_gym/SuperBallRoll-v0 oracle env_steps_per_s": 150,
-            "memory growth_mb per 100k steps": 50,
+            "tensegrity_gym/ThreeBarRoll-v0 ukf env_steps_per_s": 250,
+            "tensegrity_gym/SuperBallRoll-v0 ukf env_steps_per_s": 80,
+            "memory growth_mb per 100k steps (ukf in the loop)": 50,
         },
     }
+    if estimation:
+        from agents.bench_estimation import bench_estimation, bench_filter_speed
+
+        results["filter_speed"] = [
+            bench_filter_speed("tensegrity_gym/ThreeBarRoll-v0"),
+            bench_filter_speed("tensegrity_gym/SuperBallRoll-v0"),
+        ]
+        results["filter_speed_targets"] = {
+            "three_bar fast_filter_step_ms_median": 2.0,
+            "superball fast_filter_step_ms_median": 5.0,
+            "speedup_vs_filterpy_numpy_model": 50,
+        }
+        results["estimation"] = bench_estimation()
     if memory_steps > 0:
         results["memory"] = bench_memory("tensegrity_gym/ThreeBarRoll-v0", memory_steps)
     return results

@@ -31,7 +31,9 @@ def _demo(args: argparse.Namespace) -> int:
 def _bench(args: argparse.Namespace) -> int:
     from agents.bench import run_benchmarks
 
-    results = run_benchmarks(speed_steps=args.steps, memory_steps=args.memory_steps)
+    results = run_benchmarks(
+        speed_steps=args.steps, memory_steps=args.memory_steps, estimation=args.estimation
+    )
     text = json.dumps(results, indent=2)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
@@ -58,6 +60,12 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--steps", type=int, default=2000, help="env steps timed per env")
     bench.add_argument(
         "--memory-steps", type=int, default=100_000, help="env steps of the memory test (0: skip)"
+    )
+    bench.add_argument(
+        "--estimation",
+        action="store_true",
+        help="also run the estimation study (papers/000 on SUPERball) and the UKF's "
+        "speed against filterpy's",
     )
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)

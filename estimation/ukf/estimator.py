@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import Sample
 
-__all__ = ["UkfConfig", "UkfDiagnostics", "UkfEstimator"]
+__all__ = ["FilterStep", "UkfConfig", "UkfDiagnostics", "UkfEstimator"]
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +118,21 @@ class UkfConfig:
             )
         if self.divergence_window < 1:
             raise ValueError("UkfConfig.divergence_window must be at least 1")
+
+
+@dataclass(frozen=True)
+class FilterStep:
+    """One predict-update cycle of the filter, everything it needs."""
+
+    duration: float
+    """Seconds to predict over."""
+    rest_start: NDArray[np.float64]
+    """Actuated cable rest lengths at the start (m), (m,)."""
+    rest_end: NDArray[np.float64]
+    """... and at the end, from the motor encoders (m), (m,)."""
+    process_noise: NDArray[np.float64]
+    """Diagonal of Q for this step, (6 n,)."""
+    batch: MeasurementBatch
 
 
 @dataclass
@@ -328,45 +343,53 @@ class UkfEstimator:
             return self._update(samples, command)
 
     def _update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
-        c = self.config
+        step = self.prepare(samples, command)
+        try:
+            result = self.apply(step, self.filter)
+        except (CholeskyError, np.linalg.LinAlgError, FloatingPointError) as err:
+            log.warning("UKF numerics failed (%s); re-initialising", err)
+            return self._reinitialise()
+        self._record(step.batch.kind, result)
+        if self._diverged(result):
+            return self._reinitialise()
+        return self._estimate(reinitialised=False)
+
+    def prepare(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> FilterStep:
+        """Take in the samples of one period and say what the filter must do with them.
+
+        :meth:`update` is ``apply(prepare(samples, command), self.filter)`` plus the
+        book-keeping; the two halves are public so that a benchmark can run the same
+        filter step through another UKF implementation.
+        """
+        if not self._ready:
+            raise RuntimeError("call reset() before prepare()")
         t_before = self._t
         rest_before = self._rest.copy()
         rounds, encoder = self._absorb(samples)
         if not encoder and np.all(np.isfinite(command)):
             # No encoder reading this period: trust that the motors follow the command.
             self._rest = np.asarray(command, dtype=np.float64)
-        dt = self._t - t_before
-        try:
-            if dt > 0:
-                Q = np.diag(
-                    np.concatenate(
-                        [
-                            np.full(3 * self.description.n_nodes, self._q_pos * dt),
-                            np.full(3 * self.description.n_nodes, self._q_vel * dt),
-                        ]
-                    )
-                )
-                rest_after = self._rest
+        dt = max(self._t - t_before, 0.0)
+        n = self.description.n_nodes
+        q = np.concatenate([np.full(3 * n, self._q_pos * dt), np.full(3 * n, self._q_vel * dt)])
+        return FilterStep(dt, rest_before, self._rest.copy(), q, self._batch(rounds))
 
-                def fx(sigmas: NDArray[np.float64]) -> NDArray[np.float64]:
-                    return self.model.propagate(sigmas, dt, rest_before, rest_after)
+    def apply(self, step: FilterStep, ukf: UnscentedKalmanFilter) -> UpdateResult:
+        """Predict ``ukf`` over the step's duration, then update it with its batch."""
+        if step.duration > 0:
 
-                self.filter.predict(fx, Q)
-            batch = self._batch(rounds)
-            result = self.filter.update(
-                batch.z,
-                batch.variance,
-                lambda sig: self.measurements.predict(batch, sig),
-                batch.groups,
-                c.gate_probability,
-            )
-        except (CholeskyError, np.linalg.LinAlgError, FloatingPointError) as err:
-            log.warning("UKF numerics failed (%s); re-initialising", err)
-            return self._reinitialise()
-        self._record(batch.kind, result)
-        if self._diverged(result):
-            return self._reinitialise()
-        return self._estimate(reinitialised=False)
+            def fx(sigmas: NDArray[np.float64]) -> NDArray[np.float64]:
+                return self.model.propagate(sigmas, step.duration, step.rest_start, step.rest_end)
+
+            ukf.predict(fx, np.diag(step.process_noise))
+        batch = step.batch
+        return ukf.update(
+            batch.z,
+            batch.variance,
+            lambda sigmas: self.measurements.predict(batch, sigmas),
+            batch.groups,
+            self.config.gate_probability,
+        )
 
     def _batch(self, rounds: Sequence[UwbRangeSample]) -> MeasurementBatch:
         c = self.config

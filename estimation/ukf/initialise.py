@@ -113,7 +113,7 @@ def fit_initial_shape(
     else:
         # Without orientation, the 24 rotations of the cube about each of 4 yaws.
         cube = Rotation.create_group("O")
-        yaws = Rotation.from_euler("z", np.arange(4) * np.pi / 8)
+        yaws = [Rotation.from_euler("z", a) for a in np.arange(4) * np.pi / 8]
         candidates = [yaw * cube[i] for yaw in yaws for i in range(len(cube))]
     arena = model.anchors.mean(axis=0)
     best: tuple[float, NDArray[np.float64]] | None = None

@@ -168,6 +168,8 @@ class SpringMassModel:
         duration: float,
         rest_start: NDArray[np.float64],
         rest_end: NDArray[np.float64] | None = None,
+        *,
+        compiled: bool = True,
     ) -> NDArray[np.float64]:
         """Advance a batch of states by ``duration`` seconds.
 
@@ -177,6 +179,9 @@ class SpringMassModel:
             rest_start, rest_end: actuated cable rest lengths (m), (m,), at the start
                 and end of the interval; linearly interpolated in between (the motors
                 slew). ``rest_end`` None holds ``rest_start``.
+            compiled: the numba kernel (default), or the same equations in plain
+                numpy, vectorised over the batch: many times slower, kept as what a
+                model written for filterpy would be, and to check the kernel against.
 
         Returns:
             The states after ``duration``, same shape as ``states`` (a new array).
@@ -189,7 +194,8 @@ class SpringMassModel:
         r0 = self.rest_lengths(np.asarray(rest_start, dtype=np.float64))
         r1 = r0 if rest_end is None else self.rest_lengths(np.asarray(rest_end, dtype=np.float64))
         n = self.n_substeps(duration)
-        _propagate(
+        step = _propagate if compiled else _propagate_numpy
+        step(
             batch,
             n,
             duration / n,
@@ -410,3 +416,117 @@ def _propagate(
                 x[i, 0] += h * v[i, 0]
                 x[i, 1] += h * v[i, 1]
                 x[i, 2] += h * v[i, 2]
+
+
+def _ramp_np(x: NDArray[np.float64], width: float) -> NDArray[np.float64]:
+    u = np.clip(x + width, 0.0, 2.0 * width)
+    return np.where(x >= width, x, u * u / (4.0 * width))
+
+
+def _step_np(x: NDArray[np.float64], width: float) -> NDArray[np.float64]:
+    return np.clip((x + width) / (2.0 * width), 0.0, 1.0)
+
+
+def _propagate_numpy(
+    states: NDArray[np.float64],
+    n_steps: int,
+    h: float,
+    members: NDArray[np.int64],
+    stiffness: NDArray[np.float64],
+    damping: NDArray[np.float64],
+    unilateral: NDArray[np.bool_],
+    rest_start: NDArray[np.float64],
+    rest_end: NDArray[np.float64],
+    inv_mass: NDArray[np.float64],
+    gravity: float,
+    ground_height: NDArray[np.float64],
+    ground_k: float,
+    ground_c: float,
+    mu: float,
+    slip: float,
+    smooth: float,
+    rod_nodes: NDArray[np.int64],
+    rod_pairs: NDArray[np.int64],
+    contact_distance: NDArray[np.float64],
+    contact_bound: NDArray[np.float64],
+    contact_k: float,
+    contact_c: float,
+) -> None:
+    """:func:`_propagate` in numpy, vectorised over states, members and rod pairs."""
+    S = states.shape[0]
+    n = inv_mass.shape[0]
+    x = states[:, : 3 * n].reshape(S, n, 3)
+    v = states[:, 3 * n :].reshape(S, n, 3)
+    i, j = members[:, 0], members[:, 1]
+    a0, a1 = rod_nodes[rod_pairs[:, 0], 0], rod_nodes[rod_pairs[:, 0], 1]
+    b0, b1 = rod_nodes[rod_pairs[:, 1], 0], rod_nodes[rod_pairs[:, 1], 1]
+    for step in range(n_steps):
+        rest = rest_start + (step + 0.5) / n_steps * (rest_end - rest_start)
+        u = x[:, j] - x[:, i]
+        length = np.linalg.norm(u, axis=-1)
+        rate = np.einsum("smi,smi->sm", u, v[:, j] - v[:, i]) / length
+        stretch = length - rest
+        tension = np.where(
+            unilateral,
+            stiffness * _ramp_np(stretch, smooth) + damping * rate * _step_np(stretch, smooth),
+            stiffness * stretch + damping * rate,
+        )
+        pull = (tension / length)[..., None] * u
+        force = np.zeros_like(x)
+        by_node = force.transpose(1, 0, 2)  # a view, (n, S, 3): np.add.at on the node axis
+        np.add.at(by_node, i, pull.transpose(1, 0, 2))
+        np.add.at(by_node, j, -pull.transpose(1, 0, 2))
+        if len(rod_pairs):
+            d1, d2 = x[:, a1] - x[:, a0], x[:, b1] - x[:, b0]
+            r = x[:, a0] - x[:, b0]
+            aa = np.einsum("spi,spi->sp", d1, d1)
+            ee = np.einsum("spi,spi->sp", d2, d2)
+            f = np.einsum("spi,spi->sp", d2, r)
+            cc = np.einsum("spi,spi->sp", d1, r)
+            bb = np.einsum("spi,spi->sp", d1, d2)
+            denom = aa * ee - bb * bb
+            s = np.where(
+                denom > 1e-12 * aa * ee,
+                np.clip((bb * f - cc * ee) / np.where(denom > 0, denom, 1.0), 0.0, 1.0),
+                0.0,
+            )
+            t = (bb * s + f) / ee
+            s = np.where(
+                t < 0.0,
+                np.clip(-cc / aa, 0.0, 1.0),
+                np.where(t > 1.0, np.clip((bb - cc) / aa, 0.0, 1.0), s),
+            )
+            t = np.clip(t, 0.0, 1.0)
+            gap = r + s[..., None] * d1 - t[..., None] * d2
+            dist = np.linalg.norm(gap, axis=-1)
+            centre = 0.5 * (x[:, a0] + x[:, a1] - x[:, b0] - x[:, b1])
+            near = (
+                (np.einsum("spi,spi->sp", centre, centre) <= contact_bound)
+                & (dist >= 1e-9)
+                & (dist < contact_distance + smooth)
+            )
+            normal = gap / np.where(dist > 0, dist, 1.0)[..., None]
+            depth = contact_distance - dist
+            sv, tv = s[..., None], t[..., None]
+            rel = np.einsum(
+                "spi,spi->sp",
+                (1 - sv) * v[:, a0] + sv * v[:, a1] - (1 - tv) * v[:, b0] - tv * v[:, b1],
+                normal,
+            )
+            fn = contact_k * _ramp_np(depth, smooth) - contact_c * rel * _step_np(depth, smooth)
+            fn = np.where(near & (fn > 0.0), fn, 0.0)
+            push = fn[..., None] * normal
+            for nodes, share in ((a0, (1 - sv) * push), (a1, sv * push)):
+                np.add.at(by_node, nodes, share.transpose(1, 0, 2))
+            for nodes, share in ((b0, (1 - tv) * push), (b1, tv * push)):
+                np.add.at(by_node, nodes, -share.transpose(1, 0, 2))
+        depth = ground_height - x[..., 2]
+        fn = ground_k * _ramp_np(depth, smooth) - ground_c * v[..., 2] * _step_np(depth, smooth)
+        fn = np.maximum(fn, 0.0)
+        v += h * inv_mass[:, None] * force
+        v[..., 2] += h * (inv_mass * fn - gravity)
+        speed = np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2 + slip * slip)
+        scale = 1.0 / (1.0 + h * inv_mass * mu * fn / speed)
+        v[..., 0] *= scale
+        v[..., 1] *= scale
+        x += h * v

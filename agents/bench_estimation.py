@@ -1,0 +1,228 @@
+"""The estimation benchmark: the study of papers/000 in simulation, and the filter's speed.
+
+Accuracy: SUPERball is recorded once per seed during a face transition (the scripted
+gait) and once during stationary actuation (two actuators on phase-shifted stepwise
+sines, papers/000 section V-A); every filter variant of the paper's study then runs on
+the same samples. The 3-bar robot, rolling, is scored with the full filter too.
+
+Speed: the same filter steps (predict over one control period, then update) run
+through this project's UKF and through filterpy's ``UnscentedKalmanFilter`` on the same
+model and the same measurements, side by side in one process. filterpy calls its
+process model once per sigma point; it is timed twice, with the model as this project
+compiles it (numba) and with the same equations in plain numpy, the way a model is
+written for filterpy.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from agents.runs import RecordedRun, record_run, replay, trajectory_errors
+from estimation.ukf import UkfConfig, UkfEstimator
+from estimation.ukf.filter import single_threaded_blas
+from tensegrity_gym.tasks.gaits import FaceGait
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from estimation.ukf.estimator import FilterStep
+    from estimation.ukf.measurements import MeasurementBatch
+    from tensegrity_gym.envs.roll_env import TensegrityEnv
+
+__all__ = [
+    "VARIANTS",
+    "bench_estimation",
+    "bench_filter_speed",
+    "record_face_transition",
+    "record_stationary_actuation",
+]
+
+log = logging.getLogger(__name__)
+
+VARIANTS: dict[str, UkfConfig] = {
+    "full": UkfConfig(),
+    "no IMU": UkfConfig(use_imu=False),
+    "constant offset": UkfConfig(constant_offset=True),
+    "4 of 8 anchors": UkfConfig(anchors=(0, 2, 4, 6)),
+}
+"""The settings of papers/000 fig. 7-8."""
+
+
+def _gait_policy() -> Any:
+    gait: FaceGait | None = None
+
+    def policy(env: TensegrityEnv, obs: NDArray[np.float32], step: int) -> NDArray[np.float32]:
+        nonlocal gait
+        if gait is None:
+            gait = FaceGait(env.backend.description, env.task)
+        return gait(obs)
+
+    return policy
+
+
+def record_face_transition(env_id: str, seed: int, steps: int = 200) -> RecordedRun:
+    """The robot rolls face to face under its scripted gait."""
+    return record_run(env_id, _gait_policy(), steps, seed)
+
+
+def record_stationary_actuation(
+    env_id: str, seed: int, steps: int = 200, cables: tuple[int, int] = (0, 1)
+) -> RecordedRun:
+    """The robot stays on its face while two actuated cables follow phase-shifted
+    stepwise sines (a new level every second, period 8 s, a quarter of the motor range).
+    """
+
+    def policy(env: TensegrityEnv, obs: NDArray[np.float32], step: int) -> NDArray[np.float32]:
+        d = env.backend.description
+        hold = env.targets_to_action(d.rest_lengths[d.actuated])
+        t = np.floor(step * env.backend.control_period)  # seconds, held for a second
+        for k, phase in zip(cables, (0.0, 0.5 * np.pi), strict=True):
+            hold[k] = np.clip(hold[k] - 0.25 + 0.25 * np.sin(2 * np.pi * t / 8.0 + phase), -1, 1)
+        return hold
+
+    return record_run(env_id, policy, steps, seed)
+
+
+def _score(run: RecordedRun, config: UkfConfig) -> dict[str, Any]:
+    estimator = UkfEstimator(config)
+    out = trajectory_errors(run, replay(run, estimator))
+    diag = estimator.diagnostics
+    out["rows_rejected_share"] = round(diag.rejected_rows / max(diag.rows, 1), 4)
+    return out
+
+
+def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    keys = ("com_rmse_m", "com_max_m", "node_rmse_m", "node_max_m", "rows_rejected_share")
+    out: dict[str, Any] = {k: round(float(np.mean([r[k] for r in rows])), 4) for k in keys}
+    out["reinitialisations"] = int(sum(r["reinitialisations"] for r in rows))
+    out["all_finite"] = bool(all(r["finite"] for r in rows))
+    out["runs"] = len(rows)
+    return out
+
+
+def bench_estimation(seeds: tuple[int, ...] = (0, 1, 2), steps: int = 200) -> dict[str, Any]:
+    """The accuracy table: scenario x variant, errors averaged over ``seeds``."""
+    table: list[dict[str, Any]] = []
+    scenarios = {
+        "face transition": record_face_transition,
+        "stationary actuation": record_stationary_actuation,
+    }
+    for scenario, record in scenarios.items():
+        runs = [record("tensegrity_gym/SuperBallRoll-v0", seed, steps) for seed in seeds]
+        for variant, config in VARIANTS.items():
+            rows = [_score(run, config) for run in runs]
+            table.append(
+                {"robot": "superball", "scenario": scenario, "variant": variant} | _mean_rows(rows)
+            )
+            log.info("%s / %s: %s", scenario, variant, table[-1])
+    three_bar = [
+        record_face_transition("tensegrity_gym/ThreeBarRoll-v0", seed, steps) for seed in seeds
+    ]
+    table.append(
+        {"robot": "three_bar", "scenario": "face transition", "variant": "full"}
+        | _mean_rows([_score(run, VARIANTS["full"]) for run in three_bar])
+    )
+    return {
+        "settle_s": 2.0,
+        "seconds_per_run": steps * 0.1,
+        "table": table,
+        "targets": {"superball full, rolling: com_rmse_m": 0.05, "node_rmse_m": 0.10},
+    }
+
+
+def _filterpy_ukf(x: NDArray[np.float64], P: NDArray[np.float64], config: UkfConfig) -> Any:
+    from filterpy.kalman import MerweScaledSigmaPoints
+    from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
+
+    n = x.shape[0]
+    sp = config.sigma_points
+    points = MerweScaledSigmaPoints(n, sp.alpha, sp.beta, sp.kappa)
+    ukf = FilterpyUKF(n, 1, 0.1, hx=None, fx=None, points=points)
+    ukf.x, ukf.P = x.copy(), P.copy()
+    return ukf
+
+
+def bench_filter_speed(
+    env_id: str, seed: int = 0, steps: int = 40, numpy_steps: int = 5
+) -> dict[str, Any]:
+    """Milliseconds a filter step, this project's UKF and filterpy's, same model and data.
+
+    The run is recorded with the gait; each step's inputs are prepared once, then the
+    same predict-update is timed on both filters from the same mean and covariance.
+    """
+    run = record_face_transition(env_id, seed, steps + 10)
+    # Without the gate, so that both filters use every row and their states agree.
+    estimator = UkfEstimator(UkfConfig(gate_probability=None))
+    rng = np.random.default_rng(seed)
+    estimator.reset(run.description, run.calibration, run.start.samples, run.start.command, rng)
+    model, measurements = estimator.model, estimator.measurements
+    fast_ms: list[float] = []
+    filterpy_ms: list[float] = []
+    filterpy_numpy_ms: list[float] = []
+    full_update_ms: list[float] = []
+    max_state_diff = 0.0
+    with single_threaded_blas():
+        for step in run.steps[:steps]:
+            t0 = time.perf_counter()
+            prepared = estimator.prepare(step.samples, step.command)
+            prepare_s = time.perf_counter() - t0
+            x0, P0 = estimator.filter.x.copy(), estimator.filter.P.copy()
+
+            t0 = time.perf_counter()
+            estimator.apply(prepared, estimator.filter)
+            fast = time.perf_counter() - t0
+            fast_ms.append(1e3 * fast)
+            full_update_ms.append(1e3 * (fast + prepare_s))
+
+            batch = prepared.batch
+
+            def hx(
+                state: NDArray[np.float64], batch: MeasurementBatch = batch
+            ) -> NDArray[np.float64]:
+                return np.asarray(measurements.predict(batch, state[None])[0])
+
+            # filterpy calls its fx once per sigma point: once with the same compiled
+            # kernel, and (on the first few steps) with the model in plain numpy.
+            for compiled, times in ((True, filterpy_ms), (False, filterpy_numpy_ms)):
+                if not compiled and len(times) >= numpy_steps:
+                    continue
+
+                def fx(
+                    state: NDArray[np.float64],
+                    dt: float,
+                    compiled: bool = compiled,
+                    step: FilterStep = prepared,
+                ) -> NDArray[np.float64]:
+                    return model.propagate(
+                        state, dt, step.rest_start, step.rest_end, compiled=compiled
+                    )
+
+                ref = _filterpy_ukf(x0, P0, estimator.config)
+                ref.Q = np.diag(prepared.process_noise)
+                t0 = time.perf_counter()
+                ref.predict(dt=prepared.duration, fx=fx)
+                ref.update(batch.z, R=np.diag(batch.variance), hx=hx)
+                times.append(1e3 * (time.perf_counter() - t0))
+                max_state_diff = max(
+                    max_state_diff, float(np.max(np.abs(ref.x - estimator.filter.x)))
+                )
+    fast_med, ref_med = float(np.median(fast_ms)), float(np.median(filterpy_ms))
+    numpy_med = float(np.median(filterpy_numpy_ms))
+    d = run.description
+    return {
+        "robot": d.name,
+        "state_dim": 6 * d.n_nodes,
+        "sigma_points": 12 * d.n_nodes + 1,
+        "steps_timed": len(fast_ms),
+        "fast_filter_step_ms_median": round(fast_med, 3),
+        "fast_estimator_update_ms_median": round(float(np.median(full_update_ms)), 3),
+        "filterpy_compiled_model_ms_median": round(ref_med, 3),
+        "speedup_vs_filterpy_compiled_model": round(ref_med / fast_med, 1),
+        "filterpy_numpy_model_ms_median": round(numpy_med, 3),
+        "speedup_vs_filterpy_numpy_model": round(numpy_med / fast_med, 1),
+        "max_state_difference_vs_filterpy_m": float(f"{max_state_diff:.3g}"),
+    }

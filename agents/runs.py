@@ -1,0 +1,157 @@
+"""Recorded runs in memory: what a backend produced, replayed through any estimator.
+
+An estimator study runs every variant on the same samples (as papers/000 does), so the
+run is recorded once, by a wrapper around the env's backend, and replayed after.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, cast
+
+import gymnasium as gym
+import numpy as np
+
+import tensegrity_gym  # noqa: F401  (registers the envs)
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.envs.roll_env import TensegrityEnv
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.estimate import Estimate
+    from tensegrity_gym.model.protocols import Backend, Estimator, SensorCalibration, StepResult
+    from tensegrity_gym.model.samples import GroundTruth, Sample
+
+__all__ = ["RecordedRun", "RecordingBackend", "record_run", "replay", "trajectory_errors"]
+
+
+@dataclass
+class RecordedStep:
+    samples: list[Sample]
+    command: NDArray[np.float64]
+    truth: GroundTruth | None
+
+
+@dataclass
+class RecordedRun:
+    """The reset samples and every control period after, with the truth where known."""
+
+    description: RobotDescription
+    calibration: SensorCalibration
+    start: RecordedStep
+    steps: list[RecordedStep] = field(default_factory=list)
+
+    @property
+    def duration(self) -> float:
+        return float(self.steps[-1].truth.t) if self.steps and self.steps[-1].truth else 0.0
+
+
+class RecordingBackend:
+    """A backend that keeps a copy of everything the wrapped one produced."""
+
+    def __init__(self, inner: Backend) -> None:
+        self.inner = inner
+        self.description = inner.description
+        self.control_period = inner.control_period
+        self.run: RecordedRun | None = None
+
+    @property
+    def calibration(self) -> SensorCalibration:
+        return self.inner.calibration
+
+    def reset(self, rng: np.random.Generator) -> StepResult:
+        result = self.inner.reset(rng)
+        d = self.description
+        start = RecordedStep(
+            list(result.samples), d.rest_lengths[d.actuated].copy(), self.inner.ground_truth()
+        )
+        self.run = RecordedRun(d, self.inner.calibration, start)
+        return result
+
+    def step(self, targets: NDArray[np.float64]) -> StepResult:
+        result = self.inner.step(targets)
+        if self.run is not None:
+            self.run.steps.append(
+                RecordedStep(list(result.samples), np.array(targets), self.inner.ground_truth())
+            )
+        return result
+
+    def ground_truth(self) -> GroundTruth | None:
+        return self.inner.ground_truth()
+
+    def render(self, width: int, height: int) -> NDArray[np.uint8]:
+        return self.inner.render(width, height)
+
+    def close(self) -> None:
+        self.inner.close()
+
+
+def record_run(
+    env_id: str,
+    policy: Callable[[TensegrityEnv, NDArray[np.float32], int], NDArray[np.float32]],
+    steps: int,
+    seed: int = 0,
+    **make_kwargs: Any,
+) -> RecordedRun:
+    """Run ``policy(env, observation, step)`` for ``steps`` control steps; keep everything.
+
+    The env runs with the oracle so that the recorded samples do not depend on any
+    estimator; estimators are replayed on them afterwards.
+    """
+    env = gym.make(env_id, estimator="oracle", max_episode_steps=steps + 1, **make_kwargs)
+    inner = cast("TensegrityEnv", env.unwrapped)
+    recorder = RecordingBackend(inner.backend)
+    inner.backend = recorder
+    obs, _ = env.reset(seed=seed)
+    for k in range(steps):
+        obs, _, terminated, truncated, _ = env.step(policy(inner, obs, k))
+        if terminated or truncated:
+            break
+    env.close()
+    assert recorder.run is not None
+    return recorder.run
+
+
+def replay(
+    run: RecordedRun,
+    estimator: Estimator,
+    seed: int = 0,
+    on_update: Callable[[], None] | None = None,
+) -> list[Estimate]:
+    """The estimates ``estimator`` gives on the recorded samples: the start, then one a step."""
+    rng = np.random.default_rng(seed)
+    start = run.start
+    out = [estimator.reset(run.description, run.calibration, start.samples, start.command, rng)]
+    for step in run.steps:
+        out.append(estimator.update(step.samples, step.command))
+    return out
+
+
+def trajectory_errors(
+    run: RecordedRun, estimates: Sequence[Estimate], settle: float = 2.0
+) -> dict[str, Any]:
+    """CoM and node errors (m) of ``estimates`` against the truth, after ``settle`` s."""
+    truths = [run.start.truth] + [s.truth for s in run.steps]
+    t0 = estimates[0].t
+    com, nodes = [], []
+    for est, truth in zip(estimates, truths, strict=True):
+        if truth is None or est.t - t0 < settle:
+            continue
+        com.append(float(np.linalg.norm(est.com - truth.com)))
+        d = np.linalg.norm(est.node_positions - truth.node_positions, axis=1)
+        nodes.append(d)
+    if not com:
+        raise ValueError("no step with ground truth after the settling time")
+    com_a, nodes_a = np.array(com), np.array(nodes)
+    return {
+        "com_rmse_m": round(float(np.sqrt(np.mean(com_a**2))), 4),
+        "com_max_m": round(float(com_a.max()), 4),
+        "node_rmse_m": round(float(np.sqrt(np.mean(nodes_a**2))), 4),
+        "node_max_m": round(float(nodes_a.max()), 4),
+        "finite": bool(all(e.is_finite() for e in estimates)),
+        "reinitialisations": int(sum(e.reinitialised for e in estimates)),
+        "steps_scored": len(com),
+    }
