@@ -16,13 +16,18 @@ log = logging.getLogger("tensegrity_gym")
 def _demo(args: argparse.Namespace) -> int:
     from agents.demo import run_gait
 
-    summary = run_gait(args.env, steps=args.steps, seed=args.seed, out=Path(args.out))
+    summary = run_gait(
+        args.env, steps=args.steps, seed=args.seed, estimator=args.estimator, out=Path(args.out)
+    )
     s, e = summary["com_start"], summary["com_end"]
     sys.stdout.write(
         f"{summary['env']}: scripted gait, {summary['seconds']:.1f} s simulated, "
         f"{summary['face_changes']} support-face changes\n"
         f"  true CoM went from ({s[0]:+.3f}, {s[1]:+.3f}) to ({e[0]:+.3f}, {e[1]:+.3f}) m: "
         f"{summary['distance']:.3f} m in a straight line, {summary['path_length']:.3f} m of path\n"
+        f"  {summary['estimator']} estimate of the CoM: "
+        f"{100 * summary['estimation_error_rms']:.1f} cm RMS error, "
+        f"{100 * summary['estimation_error_max']:.1f} cm at worst\n"
         f"  plot: {summary['plot']}\n"
     )
     return 1 if summary["diverged"] else 0
@@ -53,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
     demo.add_argument("--steps", type=int, default=300, help="control steps (10 Hz)")
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--estimator", default="ukf", choices=["ukf", "oracle"])
     demo.add_argument("--out", default="demo_out", help="folder for the plot and summary")
     demo.set_defaults(func=_demo)
 

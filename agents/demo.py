@@ -27,7 +27,7 @@ def run_gait(
     *,
     steps: int = 300,
     seed: int = 0,
-    estimator: str = "oracle",
+    estimator: str = "ukf",
     out: Path | None = None,
 ) -> dict[str, Any]:
     """Roll the robot with its scripted gait for ``steps`` control steps.
@@ -40,6 +40,7 @@ def run_gait(
     gait = FaceGait(inner.backend.description, inner.task)
     obs, info = env.reset(seed=seed)
     true_path = [info["com_true"]]
+    errors = [info["estimation_error"]]
     est_path = [info["com_estimate"]]
     faces = [gait.support_face(obs)]
     diverged = False
@@ -48,6 +49,7 @@ def run_gait(
         est_path.append(info["com_estimate"])
         if "com_true" in info:
             true_path.append(info["com_true"])
+            errors.append(info["estimation_error"])
         face = gait.support_face(obs)
         if face != faces[-1]:
             faces.append(face)
@@ -67,6 +69,9 @@ def run_gait(
         "distance": float(np.linalg.norm(end[:2] - start[:2])),
         "path_length": float(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1).sum()),
         "face_changes": len(faces) - 1,
+        "estimator": estimator,
+        "estimation_error_rms": float(np.sqrt(np.mean(np.square(errors)))),
+        "estimation_error_max": float(np.max(errors)),
         "diverged": diverged,
     }
     if out is not None:
