@@ -15,6 +15,9 @@ def test_three_bar_gait_rolls_face_to_face(tmp_path) -> None:
     assert not summary["diverged"]
     assert summary["face_changes"] >= 3, "it flips from one base triangle to the next"
     assert summary["distance"] > 0.4  # metres in 12 s; the robot is 0.36 m long
+    # The gait reads the UKF's estimate, and the estimate follows the truth while rolling.
+    assert summary["estimator"] == "ukf"
+    assert summary["estimation_error_max"] < 0.05
     assert (tmp_path / "com_path.png").stat().st_size > 10_000
     assert (tmp_path / "summary.json").exists()
 
@@ -24,6 +27,7 @@ def test_superball_gait_goes_through_face_transitions(tmp_path) -> None:
     assert not summary["diverged"]
     assert summary["face_changes"] >= 2
     assert summary["distance"] > 1.0  # metres; SUPERball's rods are 1.5 m
+    assert summary["estimation_error_rms"] < 0.05
 
 
 def test_gait_rejects_unknown_robot_and_bad_table() -> None:
