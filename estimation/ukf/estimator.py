@@ -97,6 +97,10 @@ class UkfConfig:
     """Mean NIS per accepted row over ``divergence_window`` updates that counts as
     divergence."""
     divergence_window: int = 5
+    divergence_reject_share: float = 0.3
+    """Gating out more than this share of the ranges ..."""
+    divergence_reject_updates: int = 3
+    """... in this many updates in a row counts as divergence."""
     divergence_rod_strain: float = 0.25
     """A rod estimated this much longer or shorter (share of its length) is divergence."""
 
@@ -116,8 +120,15 @@ class UkfConfig:
                 f"UkfConfig.gate_probability must lie in (0.5, 1) or be None, "
                 f"got {self.gate_probability}"
             )
-        if self.divergence_window < 1:
-            raise ValueError("UkfConfig.divergence_window must be at least 1")
+        if self.divergence_window < 1 or self.divergence_reject_updates < 1:
+            raise ValueError(
+                "UkfConfig.divergence_window and divergence_reject_updates must be at least 1"
+            )
+        if not 0 < self.divergence_reject_share < 1:
+            raise ValueError(
+                f"UkfConfig.divergence_reject_share must lie in (0, 1), "
+                f"got {self.divergence_reject_share}"
+            )
 
 
 @dataclass(frozen=True)
@@ -273,6 +284,7 @@ class UkfEstimator:
         )
         self.filter = UnscentedKalmanFilter(x, P, c.sigma_points)
         self._nis_window: deque[float] = deque(maxlen=c.divergence_window)
+        self._reject_window: deque[float] = deque(maxlen=c.divergence_reject_updates)
 
     # ------------------------------------------------------------------ samples
 
@@ -429,6 +441,9 @@ class UkfEstimator:
             diag.jitter_events += 1
         diag.last_update = result
         accepted = int(np.count_nonzero(result.accepted))
+        ranges = kinds == RowKind.RANGE
+        if np.count_nonzero(ranges) >= 5:
+            self._reject_window.append(float(np.mean(~result.accepted[ranges])))
         if accepted:
             nis = result.nis / accepted
             diag.nis_history.append(nis)
@@ -446,6 +461,11 @@ class UkfEstimator:
         if np.any(strain > c.divergence_rod_strain):
             return True
         if np.max(np.diag(P)[: 3 * d.n_nodes]) > (10.0 * d.characteristic_length) ** 2:
+            return True
+        # A filter that has slid away gates out the very ranges that would pull it
+        # back, and the rows it still accepts look consistent: count the rejections.
+        rejects = self._reject_window
+        if len(rejects) == rejects.maxlen and min(rejects) > c.divergence_reject_share:
             return True
         window = self._nis_window
         return len(window) == window.maxlen and float(np.mean(window)) > c.divergence_nis
