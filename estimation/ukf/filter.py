@@ -11,6 +11,7 @@ factorisation fails, and gating of outlying measurements.
 from __future__ import annotations
 
 import functools
+import itertools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -64,7 +65,13 @@ class UpdateResult:
 
 def chi2_gate(probability: float, dof: NDArray[np.intp]) -> NDArray[np.float64]:
     """Mahalanobis-squared thresholds that a true measurement passes with ``probability``."""
-    return np.asarray(scipy.stats.chi2.ppf(probability, dof), dtype=np.float64)
+    return np.array([_chi2_quantile(probability, int(k)) for k in dof], dtype=np.float64)
+
+
+@functools.lru_cache(maxsize=64)
+def _chi2_quantile(probability: float, dof: int) -> float:
+    # scipy's ppf costs tens of microseconds a call; a filter asks for a handful of dofs.
+    return float(scipy.stats.chi2.ppf(probability, dof))
 
 
 class UnscentedKalmanFilter:
@@ -173,17 +180,24 @@ def _gate(
 ) -> NDArray[np.bool_]:
     """(k,) True where the row's group passes the chi-square gate."""
     diag = np.diag(S)
-    if groups is None:
-        return np.asarray(y * y <= chi2_gate(probability, np.ones(1, dtype=np.intp))[0] * diag)
-    ids, inverse, counts = np.unique(groups, return_inverse=True, return_counts=True)
-    thresholds = chi2_gate(probability, counts)
-    d2 = np.empty(len(ids))
-    single = counts == 1
-    # Scalar groups at once; the few multi-row groups (directions) one by one.
-    rows_single = np.flatnonzero(single[inverse])
-    d2[inverse[rows_single]] = y[rows_single] ** 2 / diag[rows_single]
-    for g in np.flatnonzero(~single):
-        rows = np.flatnonzero(inverse == g)
-        block = S[np.ix_(rows, rows)]
-        d2[g] = float(y[rows] @ np.linalg.solve(block, y[rows]))
-    return np.asarray(d2[inverse] <= thresholds[inverse])
+    # Every row alone first; then the few multi-row groups (directions) as blocks.
+    accepted = np.asarray(y * y <= _chi2_quantile(probability, 1) * diag)
+    if groups is None or len(groups) < 2:
+        return accepted
+    if np.all(groups[1:] >= groups[:-1]):  # groups in runs, as batches make them: no sort
+        bounds = np.concatenate([[0], np.flatnonzero(np.diff(groups)) + 1, [len(groups)]])
+        blocks = [np.arange(a, b) for a, b in itertools.pairwise(bounds.tolist()) if b - a > 1]
+    else:
+        _, inverse, counts = np.unique(groups, return_inverse=True, return_counts=True)
+        blocks = [np.flatnonzero(inverse == g) for g in np.flatnonzero(counts > 1)]
+    for rows in blocks:
+        accepted[rows] = _passes(y, S, rows, probability)
+    return accepted
+
+
+def _passes(
+    y: NDArray[np.float64], S: NDArray[np.float64], rows: NDArray[np.intp], probability: float
+) -> bool:
+    block = S[np.ix_(rows, rows)]
+    d2 = float(y[rows] @ np.linalg.solve(block, y[rows]))
+    return d2 <= _chi2_quantile(probability, len(rows))

@@ -38,7 +38,7 @@ class SpringMassParams:
     """Integration step (s)."""
     rod_stiffness: float | None = None
     """Axial stiffness of the rods as members (N/m)."""
-    rod_stiffness_factor: float = 10.0
+    rod_stiffness_factor: float = 5.0
     """Rod stiffness as a multiple of the stiffest cable's, when not given."""
     rod_damping_ratio: float = 0.5
     """Damping of the rod members as a share of critical."""
