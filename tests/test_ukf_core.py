@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import scipy.stats
 from filterpy.kalman import MerweScaledSigmaPoints
 from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
 
@@ -58,7 +59,7 @@ def test_sigma_points_and_weights_match_filterpy(n: int, alpha: float) -> None:
     np.testing.assert_allclose(ours, ref.sigma_points(x, P), rtol=1e-12, atol=1e-12)
 
 
-@pytest.mark.parametrize(("alpha", "chained", "atol"), [(0.0139, False, 1e-9), (1.0, True, 1e-12)])
+@pytest.mark.parametrize(("alpha", "chained", "atol"), [(0.0139, False, 1e-9), (1.0, True, 1e-9)])
 def test_fast_filter_matches_filterpy_on_the_spring_mass_model(
     rolling_run: RecordedRun, alpha: float, chained: bool, atol: float
 ) -> None:
@@ -279,11 +280,10 @@ def test_the_filter_never_sees_the_simulator() -> None:
 
 
 def test_consistency_on_a_quiet_trajectory() -> None:
-    """NEES of the node positions and NIS per row over seeded runs of a resting robot.
+    """NEES of the node positions over seeded runs of a resting robot, in its band.
 
-    The default tuning is for rolling, so on a resting robot the filter is cautious:
-    NEES per degree of freedom measured 0.33 (5 seeds), below the chi-square band of
-    a consistent filter but in no way overconfident; NIS per row 0.55.
+    Within a run the errors are correlated in time, so each run's average counts as
+    one chi-square sample of 3 n degrees of freedom: the band is that of 5 x 18 dof.
     """
 
     def hold(env, obs, step):  # type: ignore[no-untyped-def]
@@ -304,6 +304,9 @@ def test_consistency_on_a_quiet_trajectory() -> None:
             err = (e.node_positions - step.truth.node_positions).ravel()
             nees.append(err @ np.linalg.solve(e.covariance[: 3 * n, : 3 * n], err) / (3 * n))
         nis += list(est.diagnostics.nis_history)[10:]
-        assert est.diagnostics.reinitialisations == 0
-    assert 0.2 < float(np.mean(nees)) < 5.0
-    assert 0.2 < float(np.mean(nis)) < 3.0
+        # A first fit from one UWB round may be re-done once the filter has more.
+        assert est.diagnostics.reinitialisations <= 1
+    dof = 5 * 3 * 6
+    low, high = scipy.stats.chi2.ppf([0.025, 0.975], dof) / dof
+    assert low < float(np.mean(nees)) < high, (low, float(np.mean(nees)), high)
+    assert 0.3 < float(np.mean(nis)) < 2.0

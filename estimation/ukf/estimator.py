@@ -59,7 +59,7 @@ class UkfConfig:
 
     sigma_points: SigmaPointParams = field(default_factory=SigmaPointParams)
     model: SpringMassParams = field(default_factory=SpringMassParams)
-    position_noise: float = 0.02
+    position_noise: float = 0.01
     """Process noise on node positions: std per sqrt(s), in rod lengths."""
     velocity_noise: float = 0.5
     """Process noise on node velocities: std per sqrt(s), in rod lengths per s."""
@@ -85,6 +85,8 @@ class UkfConfig:
     """One offset (the mean of the calibration's) for every pair instead of o_ij."""
     gate_probability: float | None = 0.9999
     """Chi-square gate on each measurement group; None turns gating off."""
+    gate_after: int = 10
+    """Updates after (re)initialisation before the gate applies."""
     initial_position_sigma: float = 0.1
     """Std of the initial node positions, in rod lengths."""
     initial_velocity_sigma: float = 0.05
@@ -97,10 +99,12 @@ class UkfConfig:
     """Mean NIS per accepted row over ``divergence_window`` updates that counts as
     divergence."""
     divergence_window: int = 5
-    divergence_reject_share: float = 0.3
-    """Gating out more than this share of the ranges ..."""
-    divergence_reject_updates: int = 3
-    """... in this many updates in a row counts as divergence."""
+    lockout_range_share: float = 0.3
+    """Gating out more than this share of the ranges, or a rod's axis, ..."""
+    lockout_updates: int = 3
+    """... in this many updates in a row is a gate lock-out: the covariance is reset to
+    its initial size around the current state; a second lock-out soon after counts as
+    divergence."""
     divergence_rod_strain: float = 0.25
     """A rod estimated this much longer or shorter (share of its length) is divergence."""
 
@@ -120,14 +124,11 @@ class UkfConfig:
                 f"UkfConfig.gate_probability must lie in (0.5, 1) or be None, "
                 f"got {self.gate_probability}"
             )
-        if self.divergence_window < 1 or self.divergence_reject_updates < 1:
+        if self.divergence_window < 1 or self.lockout_updates < 1:
+            raise ValueError("UkfConfig.divergence_window and lockout_updates must be at least 1")
+        if not 0 < self.lockout_range_share < 1:
             raise ValueError(
-                "UkfConfig.divergence_window and divergence_reject_updates must be at least 1"
-            )
-        if not 0 < self.divergence_reject_share < 1:
-            raise ValueError(
-                f"UkfConfig.divergence_reject_share must lie in (0, 1), "
-                f"got {self.divergence_reject_share}"
+                f"UkfConfig.lockout_range_share must lie in (0, 1), got {self.lockout_range_share}"
             )
 
 
@@ -155,6 +156,8 @@ class UkfDiagnostics:
     rejected_rows: int = 0
     rejected_by_kind: dict[str, int] = field(default_factory=dict)
     reinitialisations: int = 0
+    covariance_resets: int = 0
+    """Gate lock-outs answered by resetting the covariance."""
     jitter_events: int = 0
     last_update: UpdateResult | None = None
     nis_history: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
@@ -282,9 +285,16 @@ class UkfEstimator:
                 ]
             )
         )
-        self.filter = UnscentedKalmanFilter(x, P, c.sigma_points)
+        self._initial_P = P
+        self.filter = UnscentedKalmanFilter(x, P.copy(), c.sigma_points)
         self._nis_window: deque[float] = deque(maxlen=c.divergence_window)
-        self._reject_window: deque[float] = deque(maxlen=c.divergence_reject_updates)
+        self._clear_lockout()
+        self._updates_since_reset: int | None = None  # no covariance reset yet
+        self._updates_since_start = 0
+
+    def _clear_lockout(self) -> None:
+        self._range_rejects: deque[float] = deque(maxlen=self.config.lockout_updates)
+        self._axis_reject_run = np.zeros(self.description.n_rods, dtype=np.intp)
 
     # ------------------------------------------------------------------ samples
 
@@ -361,10 +371,37 @@ class UkfEstimator:
         except (CholeskyError, np.linalg.LinAlgError, FloatingPointError) as err:
             log.warning("UKF numerics failed (%s); re-initialising", err)
             return self._reinitialise()
-        self._record(step.batch.kind, result)
+        self._record(step.batch, result)
+        self._updates_since_start += 1
         if self._diverged(result):
             return self._reinitialise()
+        if self._updates_since_reset is not None:
+            self._updates_since_reset += 1
+        if self._locked_out():
+            # A filter that has slid away gates out the very rows that would pull it
+            # back, while the rows it still accepts look consistent. Widen the
+            # covariance so they are heard again; if that does not help, start over.
+            recent = self._updates_since_reset
+            if recent is not None and recent < 10 * self.config.lockout_updates:
+                return self._reinitialise()
+            self.diagnostics.covariance_resets += 1
+            self.filter.P = self.filter.P + self._initial_P
+            self._clear_lockout()
+            self._updates_since_reset = 0
         return self._estimate(reinitialised=False)
+
+    @property
+    def _gating(self) -> bool:
+        # Right after (re)initialisation the state is still far off: gating then would
+        # throw away the rows that pull it in.
+        return self._updates_since_start >= self.config.gate_after
+
+    def _locked_out(self) -> bool:
+        c = self.config
+        rejects = self._range_rejects
+        if len(rejects) == rejects.maxlen and min(rejects) > c.lockout_range_share:
+            return True
+        return bool(np.any(self._axis_reject_run >= c.lockout_updates))
 
     def prepare(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> FilterStep:
         """Take in the samples of one period and say what the filter must do with them.
@@ -400,7 +437,7 @@ class UkfEstimator:
             batch.variance,
             lambda sigmas: self.measurements.predict(batch, sigmas),
             batch.groups,
-            self.config.gate_probability,
+            self.config.gate_probability if self._gating else None,
         )
 
     def _batch(self, rounds: Sequence[UwbRangeSample]) -> MeasurementBatch:
@@ -427,7 +464,8 @@ class UkfEstimator:
         self._contacts = None
         return batch
 
-    def _record(self, kinds: NDArray[np.int8], result: UpdateResult) -> None:
+    def _record(self, batch: MeasurementBatch, result: UpdateResult) -> None:
+        kinds = batch.kind
         diag = self.diagnostics
         diag.updates += 1
         diag.rows += result.n_measurements
@@ -443,7 +481,12 @@ class UkfEstimator:
         accepted = int(np.count_nonzero(result.accepted))
         ranges = kinds == RowKind.RANGE
         if np.count_nonzero(ranges) >= 5:
-            self._reject_window.append(float(np.mean(~result.accepted[ranges])))
+            self._range_rejects.append(float(np.mean(~result.accepted[ranges])))
+        if batch.axis_rods.size:
+            # Axis rows come first, three a rod.
+            rejected = ~result.accepted[: 3 * batch.axis_rods.size].reshape(-1, 3).all(axis=1)
+            run = self._axis_reject_run
+            run[batch.axis_rods] = np.where(rejected, run[batch.axis_rods] + 1, 0)
         if accepted:
             nis = result.nis / accepted
             diag.nis_history.append(nis)
@@ -461,11 +504,6 @@ class UkfEstimator:
         if np.any(strain > c.divergence_rod_strain):
             return True
         if np.max(np.diag(P)[: 3 * d.n_nodes]) > (10.0 * d.characteristic_length) ** 2:
-            return True
-        # A filter that has slid away gates out the very ranges that would pull it
-        # back, and the rows it still accepts look consistent: count the rejections.
-        rejects = self._reject_window
-        if len(rejects) == rejects.maxlen and min(rejects) > c.divergence_reject_share:
             return True
         window = self._nis_window
         return len(window) == window.maxlen and float(np.mean(window)) > c.divergence_nis
