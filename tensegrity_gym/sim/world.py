@@ -12,7 +12,6 @@ per-call overhead dominates at these sizes.
 
 from __future__ import annotations
 
-import math
 import os
 import sys
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from tensegrity_gym.model.kinematics import (
     quaternion_rotate,
     rod_quaternion_from_axis,
 )
+from tensegrity_gym.sim.cables import cable_wrenches, slew_motors
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -79,6 +79,13 @@ class PhysicsWorld:
             (int(c.nodes[0]), int(c.nodes[1]), c.stiffness, c.damping) for c in d.cables
         ]
         self._actuated = [int(k) for k in d.actuated]
+        self._actuated_arr = np.asarray(d.actuated, dtype=np.int64)
+        self._node_of_arr = np.asarray(self._node_of, dtype=np.int64).reshape(-1, 2)
+        self._cable_arrays = (
+            np.asarray(d.cable_nodes, dtype=np.int64),
+            np.array([cable.stiffness for cable in d.cables]),
+            np.array([cable.damping for cable in d.cables]),
+        )
         lo, hi, speed = d.motor_limits
         self._motor_lo = lo.tolist()
         self._motor_hi = hi.tolist()
@@ -254,110 +261,51 @@ class PhysicsWorld:
         c = self.client
         bodies = self.bodies
         n_rods = len(bodies)
-        half = self._half
-        node_of = self._node_of
-        cables = self._cables
-        actuated = self._actuated
-        lo, hi, dmax = self._motor_lo, self._motor_hi, self._motor_step
-        rest = self.rest_lengths
+        lo, hi = self._motor_lo, self._motor_hi
         tgt = [min(max(float(x), lo[i]), hi[i]) for i, x in enumerate(targets)]
         self.targets = tgt
+        targets_arr = np.array(tgt)
+        rest = np.array(self.rest_lengths)
+        prev_len = np.array(self._cable_lengths, dtype=np.float64)
+        half = np.array(self._half)
+        node_of = self._node_of_arr
+        cable_nodes, stiffness, damping = self._cable_arrays
+        actuated, max_step = self._actuated_arr, np.array(self._motor_step)
         n_nodes = self.description.n_nodes
         get_pose = pybullet.getBasePositionAndOrientation
         apply_force = pybullet.applyExternalForce
         apply_torque = pybullet.applyExternalTorque
         step_sim = pybullet.stepSimulation
         world_frame = pybullet.WORLD_FRAME
-        dt = self.time_step
-        inv_dt = 1.0 / dt
-        prev_len = self._cable_lengths
+        inv_dt = 1.0 / self.time_step
         snapshots: list[Snapshot] = []
-        nx = [[0.0, 0.0, 0.0] for _ in range(n_nodes)]
+        poses = np.empty((n_rods, 7))
+        wrench = np.empty((n_rods, 6))
         moving = True
         for step in range(n_steps):
             if moving:  # motors slew toward their targets
-                moving = False
-                for i, k in enumerate(actuated):
-                    err = tgt[i] - rest[k]
-                    s = dmax[i]
-                    if err > s:
-                        rest[k] += s
-                        moving = True
-                    elif err < -s:
-                        rest[k] -= s
-                        moving = True
-                    else:
-                        rest[k] = tgt[i]
-            poses = []
+                moving = slew_motors(rest, actuated, targets_arr, max_step)
             for r in range(n_rods):
                 p, q = get_pose(bodies[r], physicsClientId=c)
-                poses.append(p)
-                qx, qy, qz, qw = q
-                h = half[r]
-                ax = 2.0 * (qx * qz + qw * qy) * h
-                ay = 2.0 * (qy * qz - qw * qx) * h
-                az = (1.0 - 2.0 * (qx * qx + qy * qy)) * h
-                a, b = node_of[r]
-                na, nb = nx[a], nx[b]
-                na[0] = p[0] - ax
-                na[1] = p[1] - ay
-                na[2] = p[2] - az
-                nb[0] = p[0] + ax
-                nb[1] = p[1] + ay
-                nb[2] = p[2] + az
-            fx = [0.0] * n_nodes
-            fy = [0.0] * n_nodes
-            fz = [0.0] * n_nodes
-            for k, (i, j, stiff, damp) in enumerate(cables):
-                xi, xj = nx[i], nx[j]
-                dx = xj[0] - xi[0]
-                dy = xj[1] - xi[1]
-                dz = xj[2] - xi[2]
-                length = math.sqrt(dx * dx + dy * dy + dz * dz)
-                # dL/dt by a backward difference: one step of lag, far below the
-                # damping time constants, and it spares reading rod velocities.
-                rate = (length - prev_len[k]) * inv_dt
-                prev_len[k] = length
-                stretch = length - rest[k]
-                if stretch <= 0.0:
-                    continue  # slack: cables only pull
-                tension = stiff * stretch + damp * rate
-                if tension <= 0.0:
-                    continue
-                q = tension / length
-                ex, ey, ez = q * dx, q * dy, q * dz
-                fx[i] += ex
-                fy[i] += ey
-                fz[i] += ez
-                fx[j] -= ex
-                fy[j] -= ey
-                fz[j] -= ez
+                poses[r, :3] = p
+                poses[r, 3:] = q
+            cable_wrenches(
+                poses, half, node_of, cable_nodes, stiffness, damping, rest, prev_len,
+                inv_dt, n_nodes, wrench,
+            )  # fmt: skip
+            w = wrench.tolist()
+            centres = poses[:, :3].tolist()
             for r in range(n_rods):
-                a, b = node_of[r]
-                p = poses[r]
-                nb = nx[b]
-                # Torque about the rod centre: r_a x f_a + r_b x f_b, with r_a = -r_b.
-                rx, ry, rz = nb[0] - p[0], nb[1] - p[1], nb[2] - p[2]
-                gx, gy, gz = fx[b] - fx[a], fy[b] - fy[a], fz[b] - fz[a]
-                apply_force(
-                    bodies[r],
-                    -1,
-                    (fx[a] + fx[b], fy[a] + fy[b], fz[a] + fz[b]),
-                    p,
-                    world_frame,
-                    physicsClientId=c,
-                )
-                apply_torque(
-                    bodies[r],
-                    -1,
-                    (ry * gz - rz * gy, rz * gx - rx * gz, rx * gy - ry * gx),
-                    world_frame,
-                    physicsClientId=c,
-                )
+                wr = w[r]
+                apply_force(bodies[r], -1, wr[:3], centres[r], world_frame, physicsClientId=c)
+                apply_torque(bodies[r], -1, wr[3:], world_frame, physicsClientId=c)
             step_sim(physicsClientId=c)
-            self.time += dt
+            self.time += self.time_step
             if snapshot_steps[step]:
+                self.rest_lengths = rest.tolist()
                 snapshots.append(self.snapshot())
+        self.rest_lengths = rest.tolist()
+        self._cable_lengths = prev_len.tolist()
         return snapshots
 
     def step_bare(self, n_steps: int) -> None:
