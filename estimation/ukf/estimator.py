@@ -88,7 +88,9 @@ class UkfConfig:
     gate_after: int = 10
     """Updates after (re)initialisation before the gate applies."""
     initial_position_sigma: float = 0.1
-    """Std of the initial node positions, in rod lengths."""
+    """Std of the initial position of the robot as a whole, in rod lengths."""
+    initial_shape_sigma: float = 0.02
+    """Std of each node's initial position about that, in rod lengths."""
     initial_velocity_sigma: float = 0.05
     """Std of the initial node velocities (m/s), in rod lengths per s."""
     initial_positions: tuple[tuple[float, float, float], ...] | None = None
@@ -105,13 +107,17 @@ class UkfConfig:
     """... in this many updates in a row is a gate lock-out: the covariance is reset to
     its initial size around the current state; a second lock-out soon after counts as
     divergence."""
+    divergence_anchor_reject_share: float = 0.6
+    """Gating out more than this share of the anchor ranges of one update (at least 5)
+    counts as divergence at once: the estimate has jumped away from where the anchors
+    put the robot."""
     divergence_rod_strain: float = 0.25
     """A rod estimated this much longer or shorter (share of its length) is divergence."""
 
     def __post_init__(self) -> None:
         positive = (
             "position_noise", "velocity_noise", "axis_sigma", "range_sigma", "cable_sigma",
-            "rod_length_sigma", "contact_sigma", "initial_position_sigma",
+            "rod_length_sigma", "contact_sigma", "initial_position_sigma", "initial_shape_sigma",
             "initial_velocity_sigma", "range_window", "divergence_nis",
             "divergence_rod_strain",
         )  # fmt: skip
@@ -126,6 +132,11 @@ class UkfConfig:
             )
         if self.divergence_window < 1 or self.lockout_updates < 1:
             raise ValueError("UkfConfig.divergence_window and lockout_updates must be at least 1")
+        if not 0 < self.divergence_anchor_reject_share < 1:
+            raise ValueError(
+                "UkfConfig.divergence_anchor_reject_share must lie in (0, 1), "
+                f"got {self.divergence_anchor_reject_share}"
+            )
         if not 0 < self.lockout_range_share < 1:
             raise ValueError(
                 f"UkfConfig.lockout_range_share must lie in (0, 1), got {self.lockout_range_share}"
@@ -250,6 +261,8 @@ class UkfEstimator:
                 raise ValueError(
                     f"UkfConfig.initial_positions has shape {nodes.shape}, expected {(n, 3)}"
                 )
+            if not np.all(np.isfinite(nodes)):
+                raise ValueError("UkfConfig.initial_positions has non-finite entries")
         else:
             nodes = self._fit()
         self._start(nodes)
@@ -277,20 +290,22 @@ class UkfEstimator:
         n = self.description.n_nodes
         L = self.description.characteristic_length
         x = np.concatenate([nodes.ravel(), np.zeros(3 * n)])
-        P = np.diag(
-            np.concatenate(
-                [
-                    np.full(3 * n, (c.initial_position_sigma * L) ** 2),
-                    np.full(3 * n, (c.initial_velocity_sigma * L) ** 2),
-                ]
-            )
-        )
+        # Where the robot is is uncertain, its shape much less so: independent errors
+        # of centimetres would stretch the stiff rods, or sink the nodes into the
+        # ground, of every sigma point and fling them apart in the first predict.
+        P = np.zeros((6 * n, 6 * n))
+        # The ground fixes the height: the robot as a whole is uncertain horizontally.
+        P[: 3 * n, : 3 * n] = (c.initial_position_sigma * L) ** 2 * np.kron(
+            np.ones((n, n)), np.diag([1.0, 1.0, 0.0])
+        ) + (c.initial_shape_sigma * L) ** 2 * np.eye(3 * n)
+        P[3 * n :, 3 * n :] = (c.initial_velocity_sigma * L) ** 2 * np.eye(3 * n)
         self._initial_P = P
         self.filter = UnscentedKalmanFilter(x, P.copy(), c.sigma_points)
         self._nis_window: deque[float] = deque(maxlen=c.divergence_window)
         self._clear_lockout()
         self._updates_since_reset: int | None = None  # no covariance reset yet
         self._updates_since_start = 0
+        self._last_range_reject: float | None = None
 
     def _clear_lockout(self) -> None:
         self._range_rejects: deque[float] = deque(maxlen=self.config.lockout_updates)
@@ -482,6 +497,13 @@ class UkfEstimator:
         ranges = kinds == RowKind.RANGE
         if np.count_nonzero(ranges) >= 5:
             self._range_rejects.append(float(np.mean(~result.accepted[ranges])))
+        # Ranges to the anchors place the robot; those between its own nodes only
+        # shape it, and still fit when the whole estimate has jumped.
+        to_anchor = (batch.range_pairs >= self.description.n_nodes).any(axis=1)
+        self._last_range_reject = None
+        if np.count_nonzero(to_anchor) >= 5:
+            rejected = ~result.accepted[ranges][to_anchor]
+            self._last_range_reject = float(np.mean(rejected))
         if batch.axis_rods.size:
             # Axis rows come first, three a rod.
             rejected = ~result.accepted[: 3 * batch.axis_rods.size].reshape(-1, 3).all(axis=1)
@@ -504,6 +526,10 @@ class UkfEstimator:
         if np.any(strain > c.divergence_rod_strain):
             return True
         if np.max(np.diag(P)[: 3 * d.n_nodes]) > (10.0 * d.characteristic_length) ** 2:
+            return True
+        # Nearly every anchor range gated out at once: the estimate has jumped away.
+        ranges = self._last_range_reject
+        if ranges is not None and ranges > c.divergence_anchor_reject_share:
             return True
         window = self._nis_window
         return len(window) == window.maxlen and float(np.mean(window)) > c.divergence_nis

@@ -57,12 +57,13 @@ def robust_cholesky(
     Returns:
         (L, jitter): L (n, n) lower with L L^T = P + jitter I.
     """
+    if not np.all(np.isfinite(P)):
+        # LAPACK's potrf does not fail on NaN or inf: it would hand back a NaN factor.
+        raise CholeskyError("covariance has non-finite entries")
     try:
         return scipy.linalg.cholesky(P, lower=True, check_finite=False), 0.0
     except np.linalg.LinAlgError:
         pass
-    if not np.all(np.isfinite(P)):
-        raise CholeskyError("covariance has non-finite entries")
     scale = max(float(np.mean(np.abs(np.diag(P)))), 1e-12)
     jitter = 1e-10 * scale
     eye = np.eye(P.shape[0])

@@ -372,9 +372,11 @@ def _propagate(
                     # A cable pulls, never pushes: stretch rounded at zero, its damping
                     # fading out as it goes slack.
                     stretch = length - rest
-                    tension = stiffness[k] * _ramp(stretch, smooth) + damping[k] * rate * _step(
-                        stretch, smooth
-                    )
+                    tension = max(
+                        stiffness[k] * _ramp(stretch, smooth)
+                        + damping[k] * rate * _step(stretch, smooth),
+                        0.0,
+                    )  # damping may slow a shortening cable to slack, never push
                 else:
                     tension = stiffness[k] * (length - rest) + damping[k] * rate
                 q = tension / length
@@ -468,7 +470,10 @@ def _propagate_numpy(
         stretch = length - rest
         tension = np.where(
             unilateral,
-            stiffness * _ramp_np(stretch, smooth) + damping * rate * _step_np(stretch, smooth),
+            np.maximum(
+                stiffness * _ramp_np(stretch, smooth) + damping * rate * _step_np(stretch, smooth),
+                0.0,
+            ),
             stiffness * stretch + damping * rate,
         )
         pull = (tension / length)[..., None] * u
