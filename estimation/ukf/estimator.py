@@ -33,6 +33,7 @@ from tensegrity_gym.model.samples import (
     CableLengthSample,
     ContactSample,
     EncoderSample,
+    ImuSample,
     UwbRangeSample,
 )
 
@@ -269,9 +270,9 @@ class UkfEstimator:
         self._ready = True
         return self._estimate(reinitialised=False)
 
-    def _fit(self) -> NDArray[np.float64]:
+    def _fit(self, exclude_latest: int = 0) -> NDArray[np.float64]:
         c = self.config
-        pairs, ranges = self._recent_ranges()
+        pairs, ranges = self._recent_ranges(exclude_latest)
         return fit_initial_shape(
             self.description,
             self.measurements,
@@ -306,6 +307,7 @@ class UkfEstimator:
         self._updates_since_reset: int | None = None  # no covariance reset yet
         self._updates_since_start = 0
         self._last_range_reject: float | None = None
+        self._rounds_this_period = 0
 
     def _clear_lockout(self) -> None:
         self._range_rejects: deque[float] = deque(maxlen=self.config.lockout_updates)
@@ -319,22 +321,36 @@ class UkfEstimator:
         rounds: list[UwbRangeSample] = []
         encoder = False
         latest_ahrs: dict[int, AhrsSample] = {}
+        encoders: list[EncoderSample] = []
+        latest_cables: CableLengthSample | None = None
+        latest_contacts: ContactSample | None = None
+        # Most samples are raw IMU readings, which the filter does not use; of the
+        # rest only the newest of each kind counts, except the UWB rounds.
         for s in samples:
+            if isinstance(s, ImuSample):
+                continue
             if isinstance(s, AhrsSample):
-                latest_ahrs[s.rod] = s  # only the newest orientation of a rod is used
+                latest_ahrs[s.rod] = s
             elif isinstance(s, UwbRangeSample):
                 rounds.append(s)
                 self._ranges.append(s)
             elif isinstance(s, EncoderSample):
-                if np.all(np.isfinite(s.rest_lengths)):
-                    self._rest = np.asarray(s.rest_lengths, dtype=np.float64)
-                    encoder = True
+                encoders.append(s)
             elif isinstance(s, CableLengthSample):
-                self._cables = np.asarray(s.lengths, dtype=np.float64)
-                self._latest_cables = self._cables
+                latest_cables = s
             elif isinstance(s, ContactSample):
-                self._contacts = np.flatnonzero(s.in_contact).astype(np.intp)
-                self._latest_contacts = self._contacts
+                latest_contacts = s
+        for reading in reversed(encoders):
+            if np.all(np.isfinite(reading.rest_lengths)):
+                self._rest = np.asarray(reading.rest_lengths, dtype=np.float64)
+                encoder = True
+                break
+        if latest_cables is not None:
+            self._cables = np.asarray(latest_cables.lengths, dtype=np.float64)
+            self._latest_cables = self._cables
+        if latest_contacts is not None:
+            self._contacts = np.flatnonzero(latest_contacts.in_contact).astype(np.intp)
+            self._latest_contacts = self._contacts
         for rod, sample in latest_ahrs.items():
             q = np.asarray(sample.quaternion, dtype=np.float64)
             norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
@@ -367,8 +383,15 @@ class UkfEstimator:
             keep &= (pairs >= self.description.n_nodes).any(axis=1)
         return pairs[keep], ranges[keep]
 
-    def _recent_ranges(self) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-        return self._select_ranges(list(self._ranges))
+    def _recent_ranges(
+        self, exclude_latest: int = 0
+    ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+        """The buffered UWB rounds, without the ``exclude_latest`` newest where older
+        ones remain."""
+        rounds = list(self._ranges)
+        if 0 < exclude_latest < len(rounds):
+            rounds = rounds[:-exclude_latest]
+        return self._select_ranges(rounds)
 
     # ------------------------------------------------------------------ filtering
 
@@ -389,7 +412,12 @@ class UkfEstimator:
         self._record(step.batch, result)
         self._updates_since_start += 1
         if self._diverged(result):
-            return self._reinitialise()
+            # If this period's anchor ranges were what disagreed, they may be the bad
+            # ones (a corrupted round): fit to the rounds before them.
+            jumped = self._last_range_reject is not None and (
+                self._last_range_reject > self.config.divergence_anchor_reject_share
+            )
+            return self._reinitialise(exclude_latest=self._rounds_this_period if jumped else 0)
         if self._updates_since_reset is not None:
             self._updates_since_reset += 1
         if self._locked_out():
@@ -430,6 +458,7 @@ class UkfEstimator:
         t_before = self._t
         rest_before = self._rest.copy()
         rounds, encoder = self._absorb(samples)
+        self._rounds_this_period = len(rounds)
         if not encoder and np.all(np.isfinite(command)):
             # No encoder reading this period: trust that the motors follow the command.
             self._rest = np.asarray(command, dtype=np.float64)
@@ -534,10 +563,10 @@ class UkfEstimator:
         window = self._nis_window
         return len(window) == window.maxlen and float(np.mean(window)) > c.divergence_nis
 
-    def _reinitialise(self) -> Estimate:
+    def _reinitialise(self, exclude_latest: int = 0) -> Estimate:
         self.diagnostics.reinitialisations += 1
         try:
-            nodes = self._fit()
+            nodes = self._fit(exclude_latest)
         except (InitialisationError, ValueError, np.linalg.LinAlgError) as err:
             log.warning("UKF re-initialisation failed (%s); keeping the last estimate", err)
             x = self.filter.x
