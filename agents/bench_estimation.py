@@ -96,7 +96,11 @@ def _score(run: RecordedRun, config: UkfConfig) -> dict[str, Any]:
 
 
 def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    keys = ("com_rmse_m", "com_max_m", "node_rmse_m", "node_max_m", "rows_rejected_share")
+    keys = (
+        "com_rmse_m", "com_max_m", "node_rmse_m", "node_max_m", "rod_translation_mean_m",
+        "rod_rotation_mean_deg", "rods_within_2cm_5deg", "shape_error_mean_m",
+        "rows_rejected_share",
+    )  # fmt: skip
     out: dict[str, Any] = {k: round(float(np.mean([r[k] for r in rows])), 4) for k in keys}
     out["reinitialisations"] = int(sum(r["reinitialisations"] for r in rows))
     out["all_finite"] = bool(all(r["finite"] for r in rows))

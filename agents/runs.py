@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
+from estimation.metrics import com_errors, rod_errors, shape_errors
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
@@ -133,25 +134,32 @@ def replay(
 def trajectory_errors(
     run: RecordedRun, estimates: Sequence[Estimate], settle: float = 2.0
 ) -> dict[str, Any]:
-    """CoM and node errors (m) of ``estimates`` against the truth, after ``settle`` s."""
+    """CoM, node, rod and shape errors of ``estimates`` against the truth, after
+    ``settle`` s (:mod:`estimation.metrics`)."""
     truths = [run.start.truth] + [s.truth for s in run.steps]
     t0 = estimates[0].t
-    com, nodes = [], []
-    for est, truth in zip(estimates, truths, strict=True):
-        if truth is None or est.t - t0 < settle:
-            continue
-        com.append(float(np.linalg.norm(est.com - truth.com)))
-        d = np.linalg.norm(est.node_positions - truth.node_positions, axis=1)
-        nodes.append(d)
-    if not com:
+    pairs = [
+        (est, truth)
+        for est, truth in zip(estimates, truths, strict=True)
+        if truth is not None and est.t - t0 >= settle
+    ]
+    if not pairs:
         raise ValueError("no step with ground truth after the settling time")
-    com_a, nodes_a = np.array(com), np.array(nodes)
+    est_nodes = np.array([e.node_positions for e, _ in pairs])
+    true_nodes = np.array([t.node_positions for _, t in pairs])
+    com = com_errors(np.array([e.com for e, _ in pairs]), np.array([t.com for _, t in pairs]))
+    nodes = np.linalg.norm(est_nodes - true_nodes, axis=-1)
+    rods = rod_errors(est_nodes, true_nodes, run.description.rod_nodes)
     return {
-        "com_rmse_m": round(float(np.sqrt(np.mean(com_a**2))), 4),
-        "com_max_m": round(float(com_a.max()), 4),
-        "node_rmse_m": round(float(np.sqrt(np.mean(nodes_a**2))), 4),
-        "node_max_m": round(float(nodes_a.max()), 4),
+        "com_rmse_m": round(float(np.sqrt(np.mean(com**2))), 4),
+        "com_max_m": round(float(com.max()), 4),
+        "node_rmse_m": round(float(np.sqrt(np.mean(nodes**2))), 4),
+        "node_max_m": round(float(nodes.max()), 4),
+        "rod_translation_mean_m": round(float(rods.translation.mean()), 4),
+        "rod_rotation_mean_deg": round(float(np.degrees(rods.rotation.mean())), 2),
+        "rods_within_2cm_5deg": round(rods.share_within(), 3),
+        "shape_error_mean_m": round(float(shape_errors(est_nodes, true_nodes).mean()), 4),
         "finite": bool(all(e.is_finite() for e in estimates)),
         "reinitialisations": int(sum(e.reinitialised for e in estimates)),
-        "steps_scored": len(com),
+        "steps_scored": len(pairs),
     }

@@ -1,0 +1,43 @@
+"""The estimation benchmark's parts on short runs: they measure, and what they measure holds."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from agents.bench_estimation import (
+    VARIANTS,
+    bench_filter_speed,
+    record_face_transition,
+    record_stationary_actuation,
+)
+from agents.runs import replay, trajectory_errors
+from estimation.ukf import UkfEstimator
+
+
+def test_filter_speed_compares_like_with_like() -> None:
+    out = bench_filter_speed("tensegrity_gym/ThreeBarRoll-v0", steps=3, numpy_steps=1)
+    assert out["steps_timed"] == 3 and out["sigma_points"] == 73
+    # Both filters ran the same steps from the same start: the same answer.
+    assert out["max_state_difference_vs_filterpy_m"] < 1e-6
+    assert out["fast_filter_step_ms_median"] > 0
+    assert out["speedup_vs_filterpy_numpy_model"] > out["speedup_vs_filterpy_compiled_model"] > 1
+
+
+def test_recorded_runs_replay_through_every_variant() -> None:
+    run = record_face_transition("tensegrity_gym/ThreeBarRoll-v0", seed=0, steps=30)
+    assert len(run.steps) == 30 and run.steps[-1].truth is not None
+    for config in VARIANTS.values():
+        errors = trajectory_errors(run, replay(run, UkfEstimator(config)))
+        assert errors["finite"] and errors["steps_scored"] >= 10  # after 2 s of 3
+        assert errors["com_rmse_m"] < 0.05
+        assert 0.0 <= errors["rods_within_2cm_5deg"] <= 1.0
+
+
+def test_stationary_actuation_moves_two_cables_and_not_the_robot() -> None:
+    run = record_stationary_actuation("tensegrity_gym/SuperBallRoll-v0", seed=0, steps=40)
+    commands = np.array([s.command for s in run.steps])
+    moving = np.flatnonzero(np.ptp(commands, axis=0) > 1e-9)
+    assert moving.tolist() == [0, 1]
+    start, end = run.start.truth, run.steps[-1].truth
+    assert start is not None and end is not None
+    assert np.linalg.norm(end.com[:2] - start.com[:2]) < 0.2  # metres: it stays put
