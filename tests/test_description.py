@@ -15,7 +15,9 @@ from tensegrity_gym.model.description import (
     PRESETS,
     DescriptionError,
     RobotDescription,
+    dump_robot,
     load_robot,
+    loads_robot,
     parse_robot,
 )
 
@@ -298,3 +300,23 @@ def test_parse_robot_names_the_given_source(three_bar_doc: dict[str, Any]) -> No
     with pytest.raises(DescriptionError, match=r"^memory://robot: rods\[0\]\.length: "):
         parse_robot(doc, "memory://robot")
     assert parse_robot(copy.deepcopy(three_bar_doc), "memory://ok").source == "memory://ok"
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_description_round_trips_through_yaml_text(preset: str) -> None:
+    """What travels with a recording is the whole description, exactly."""
+    d = load_robot(preset)
+    text = dump_robot(d)
+    again = loads_robot(text, source="recording")
+    assert again == d
+    assert again.source == "recording"
+    assert dump_robot(again) == text
+
+
+def test_loads_robot_names_its_source() -> None:
+    with pytest.raises(DescriptionError, match=r"bag\.mcap: not valid YAML"):
+        loads_robot("nodes: [", source="bag.mcap")
+    with pytest.raises(DescriptionError, match=r"bag\.mcap.*gravity"):
+        loads_robot(
+            dump_robot(load_robot("three_bar")).replace("gravity: 9.81", "gravity: x"), "bag.mcap"
+        )

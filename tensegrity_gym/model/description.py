@@ -10,7 +10,7 @@ its two endcap (node) centres; its overall length is ``length + 2 * endcap_radiu
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -38,7 +38,9 @@ __all__ = [
     "Rod",
     "SensorSuite",
     "UwbConfig",
+    "dump_robot",
     "load_robot",
+    "loads_robot",
 ]
 
 PRESETS = ("three_bar", "three_bar_large", "superball")
@@ -591,6 +593,64 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
     )
 
 
+def robot_document(d: RobotDescription) -> dict[str, Any]:
+    """The YAML document of a description: :func:`parse_robot` of it gives ``d`` back."""
+
+    def plain(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, (tuple, list)):
+            return [plain(v) for v in value]
+        return value
+
+    names = [n.name for n in d.nodes]
+    return {
+        "name": d.name,
+        "gravity": d.gravity,
+        "ground": plain(asdict(d.ground)),
+        "nodes": [{"name": n.name, "position": list(n.position)} for n in d.nodes],
+        "rods": [
+            {
+                "name": rod.name,
+                "nodes": [names[i] for i in rod.nodes],
+                "length": rod.length,
+                "radius": rod.radius,
+                "endcap_radius": rod.endcap_radius,
+                "mass": rod.mass,
+                "color": list(rod.color),
+            }
+            for rod in d.rods
+        ],
+        "cables": [
+            {
+                "name": c.name,
+                "nodes": [names[i] for i in c.nodes],
+                "stiffness": c.stiffness,
+                "damping": c.damping,
+                "rest_length": c.rest_length,
+                "actuated": c.actuated,
+            }
+            | ({} if c.motor is None else {"motor": plain(asdict(c.motor))})
+            for c in d.cables
+        ],
+        "sensors": plain(asdict(d.sensors)),
+    }
+
+
+def dump_robot(d: RobotDescription) -> str:
+    """The description as YAML text, e.g. to travel with a recording."""
+    return str(yaml.safe_dump(robot_document(d), sort_keys=False))
+
+
+def loads_robot(text: str, source: str = "<text>") -> RobotDescription:
+    """A description from YAML text; errors name ``source`` and the field."""
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise DescriptionError(f"{source}: not valid YAML: {err}") from err
+    return parse_robot(doc, source)
+
+
 def load_robot(name_or_path: str | Path) -> RobotDescription:
     """Load a preset by name (see :data:`PRESETS`) or a description from a YAML file.
 
@@ -614,8 +674,4 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
             raise DescriptionError(f"{source}: not valid YAML: not UTF-8 text ({err})") from err
         except OSError as err:
             raise DescriptionError(f"{source}: cannot be read: {err}") from err
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise DescriptionError(f"{source}: not valid YAML: {err}") from err
-    return parse_robot(doc, source)
+    return loads_robot(text, source)
