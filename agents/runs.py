@@ -45,10 +45,6 @@ class RecordedRun:
     start: RecordedStep
     steps: list[RecordedStep] = field(default_factory=list)
 
-    @property
-    def duration(self) -> float:
-        return float(self.steps[-1].truth.t) if self.steps and self.steps[-1].truth else 0.0
-
 
 class RecordingBackend:
     """A backend that keeps a copy of everything the wrapped one produced."""

@@ -50,6 +50,9 @@ __all__ = ["FilterStep", "UkfConfig", "UkfDiagnostics", "UkfEstimator"]
 
 log = logging.getLogger(__name__)
 
+_JUMPED = "most anchor ranges gated out at once"
+"""The divergence in which the estimate has jumped away from where the anchors put it."""
+
 
 @dataclass(frozen=True)
 class UkfConfig:
@@ -411,12 +414,12 @@ class UkfEstimator:
             return self._reinitialise()
         self._record(step.batch, result)
         self._updates_since_start += 1
-        if self._diverged(result):
+        reason = self._divergence()
+        if reason is not None:
+            log.info("UKF diverged (%s); re-initialising", reason)
             # If this period's anchor ranges were what disagreed, they may be the bad
             # ones (a corrupted round): fit to the rounds before them.
-            jumped = self._last_range_reject is not None and (
-                self._last_range_reject > self.config.divergence_anchor_reject_share
-            )
+            jumped = reason == _JUMPED
             return self._reinitialise(exclude_latest=self._rounds_this_period if jumped else 0)
         if self._updates_since_reset is not None:
             self._updates_since_reset += 1
@@ -474,7 +477,7 @@ class UkfEstimator:
             def fx(sigmas: NDArray[np.float64]) -> NDArray[np.float64]:
                 return self.model.propagate(sigmas, step.duration, step.rest_start, step.rest_end)
 
-            ukf.predict(fx, np.diag(step.process_noise))
+            ukf.predict(fx, step.process_noise)
         batch = step.batch
         return ukf.update(
             batch.z,
@@ -514,11 +517,9 @@ class UkfEstimator:
         diag.updates += 1
         diag.rows += result.n_measurements
         diag.rejected_rows += result.n_rejected
-        for k in np.unique(kinds[~result.accepted]):
+        for k, count in zip(*np.unique(kinds[~result.accepted], return_counts=True), strict=True):
             name = RowKind(int(k)).name.lower()
-            diag.rejected_by_kind[name] = diag.rejected_by_kind.get(name, 0) + int(
-                np.count_nonzero(kinds[~result.accepted] == k)
-            )
+            diag.rejected_by_kind[name] = diag.rejected_by_kind.get(name, 0) + int(count)
         if result.jitter > 0:
             diag.jitter_events += 1
         diag.last_update = result
@@ -543,25 +544,27 @@ class UkfEstimator:
             diag.nis_history.append(nis)
             self._nis_window.append(nis)
 
-    def _diverged(self, result: UpdateResult) -> bool:
+    def _divergence(self) -> str | None:
+        """Why the filter has diverged, or None."""
         c = self.config
         x, P = self.filter.x, self.filter.P
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
-            return True
+            return "non-finite state"
         d = self.description
         nodes = x[: 3 * d.n_nodes].reshape(-1, 3)
-        rod_len = np.array([r.length for r in d.rods])
+        rod_len = self.measurements.rod_lengths
         strain = np.abs(member_lengths(nodes, d.rod_nodes) / rod_len - 1.0)
         if np.any(strain > c.divergence_rod_strain):
-            return True
+            return "rods stretched"
         if np.max(np.diag(P)[: 3 * d.n_nodes]) > (10.0 * d.characteristic_length) ** 2:
-            return True
-        # Nearly every anchor range gated out at once: the estimate has jumped away.
+            return "covariance exploded"
         ranges = self._last_range_reject
         if ranges is not None and ranges > c.divergence_anchor_reject_share:
-            return True
+            return _JUMPED
         window = self._nis_window
-        return len(window) == window.maxlen and float(np.mean(window)) > c.divergence_nis
+        if len(window) == window.maxlen and float(np.mean(window)) > c.divergence_nis:
+            return "innovations too large"
+        return None
 
     def _reinitialise(self, exclude_latest: int = 0) -> Estimate:
         self.diagnostics.reinitialisations += 1
@@ -571,7 +574,7 @@ class UkfEstimator:
             log.warning("UKF re-initialisation failed (%s); keeping the last estimate", err)
             x = self.filter.x
             if not np.all(np.isfinite(x)):
-                # Nothing finite to fall back on: the resting shape where the CoM was.
+                # Nothing finite to fall back on: the description's resting shape.
                 nodes = self.description.initial_positions
             else:
                 nodes = x[: 3 * self.description.n_nodes].reshape(-1, 3)

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
 
     from numpy.typing import NDArray
 
-__all__ = ["UnscentedKalmanFilter", "UpdateResult", "chi2_gate", "single_threaded_blas"]
+__all__ = ["UnscentedKalmanFilter", "UpdateResult", "single_threaded_blas"]
 
 
 @functools.cache
@@ -63,14 +63,11 @@ class UpdateResult:
         return int(self.n_measurements - np.count_nonzero(self.accepted))
 
 
-def chi2_gate(probability: float, dof: NDArray[np.intp]) -> NDArray[np.float64]:
-    """Mahalanobis-squared thresholds that a true measurement passes with ``probability``."""
-    return np.array([_chi2_quantile(probability, int(k)) for k in dof], dtype=np.float64)
-
-
 @functools.lru_cache(maxsize=64)
 def _chi2_quantile(probability: float, dof: int) -> float:
-    # scipy's ppf costs tens of microseconds a call; a filter asks for a handful of dofs.
+    """The Mahalanobis-squared threshold a true measurement of ``dof`` rows passes with
+    ``probability``. Cached: scipy's ppf costs tens of microseconds a call, and a filter
+    asks for a handful of dofs."""
     return float(scipy.stats.chi2.ppf(probability, dof))
 
 
@@ -106,11 +103,17 @@ class UnscentedKalmanFilter:
         fx: Callable[[NDArray[np.float64]], NDArray[np.float64]],
         Q: NDArray[np.float64],
     ) -> None:
-        """Propagate through ``fx`` (S, n) -> (S, n) and add process noise Q (n, n)."""
+        """Propagate through ``fx`` (S, n) -> (S, n) and add process noise Q ((n,)
+        variances or (n, n))."""
         propagated = fx(self.sigma_points())
         x = self.Wm @ propagated
         d = propagated - x
-        P = d.T @ (self.Wc[:, None] * d) + Q
+        P = d.T @ (self.Wc[:, None] * d)
+        Q = np.asarray(Q, dtype=np.float64)
+        if Q.ndim == 1:
+            P[np.diag_indices_from(P)] += Q
+        else:
+            P += Q
         self.x = x
         self.P = 0.5 * (P + P.T)
 
@@ -167,7 +170,7 @@ class UnscentedKalmanFilter:
         K = scipy.linalg.cho_solve((L, True), Pxz.T, check_finite=False).T
         innovation_w = scipy.linalg.solve_triangular(L, y, lower=True, check_finite=False)
         self.x = self.x + K @ y
-        P = self.P - K @ S @ K.T
+        P = self.P - K @ Pxz.T  # = K S K^T, since K S = Pxz
         self.P = 0.5 * (P + P.T)
         return UpdateResult(k, accepted, float(innovation_w @ innovation_w), jitter)
 

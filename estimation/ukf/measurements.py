@@ -69,10 +69,6 @@ class MeasurementBatch:
     def size(self) -> int:
         return int(self.z.shape[0])
 
-    def subset(self, kinds: set[RowKind]) -> NDArray[np.bool_]:
-        """(k,) mask of the rows of the given kinds."""
-        return np.isin(self.kind, [int(k) for k in kinds])
-
 
 class MeasurementModel:
     """Predicts a :class:`MeasurementBatch` for a batch of states (S, 6 n)."""

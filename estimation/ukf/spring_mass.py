@@ -61,7 +61,13 @@ class SpringMassParams:
     """Largest omega * substep allowed for any member (semi-implicit Euler: < 2)."""
 
     def __post_init__(self) -> None:
-        for name in ("substep", "rod_stiffness", "ground_stiffness", "friction"):
+        for name in (
+            "substep",
+            "rod_stiffness",
+            "ground_stiffness",
+            "rod_contact_stiffness",
+            "friction",
+        ):
             value = getattr(self, name)
             if value is not None and not (np.isfinite(value) and value > 0):
                 raise ValueError(f"SpringMassParams.{name} must be positive, got {value}")

@@ -75,9 +75,7 @@ class PhysicsWorld:
         self._half = [0.5 * r.length for r in d.rods]
         self._z_half = np.array([[0.0, 0.0, h] for h in self._half])
         self._node_of = [(int(r.nodes[0]), int(r.nodes[1])) for r in d.rods]
-        self._cables = [
-            (int(c.nodes[0]), int(c.nodes[1]), c.stiffness, c.damping) for c in d.cables
-        ]
+        self._half_arr = np.array(self._half)
         self._actuated = [int(k) for k in d.actuated]
         self._actuated_arr = np.asarray(d.actuated, dtype=np.int64)
         self._node_of_arr = np.asarray(self._node_of, dtype=np.int64).reshape(-1, 2)
@@ -89,7 +87,7 @@ class PhysicsWorld:
         lo, hi, speed = d.motor_limits
         self._motor_lo = lo.tolist()
         self._motor_hi = hi.tolist()
-        self._motor_step = (speed * time_step).tolist()
+        self._motor_step = speed * time_step  # m per physics step
         self.rest_lengths: list[float] = d.rest_lengths.tolist()
         self.targets: list[float] = [self.rest_lengths[k] for k in self._actuated]
         self.time = 0.0
@@ -267,10 +265,10 @@ class PhysicsWorld:
         targets_arr = np.array(tgt)
         rest = np.array(self.rest_lengths)
         prev_len = np.array(self._cable_lengths, dtype=np.float64)
-        half = np.array(self._half)
+        half = self._half_arr
         node_of = self._node_of_arr
         cable_nodes, stiffness, damping = self._cable_arrays
-        actuated, max_step = self._actuated_arr, np.array(self._motor_step)
+        actuated, max_step = self._actuated_arr, self._motor_step
         n_nodes = self.description.n_nodes
         get_pose = pybullet.getBasePositionAndOrientation
         apply_force = pybullet.applyExternalForce
