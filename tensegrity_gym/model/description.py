@@ -116,9 +116,11 @@ class ImuConfig:
     accel_bias: float
     """Standard deviation of each accelerometer axis' constant bias (m/s^2)."""
     gyro_bias: float
+    """Standard deviation of each gyro axis' constant bias (rad/s)."""
     mag_noise: float
+    """Magnetometer white noise, standard deviation (T)."""
     magnetic_field: tuple[float, float, float]
-    """Earth field in the world frame (gauss)."""
+    """Earth field in the world frame (T), as sensor_msgs/MagneticField carries it."""
     ahrs_gain: float
 
 

@@ -1,8 +1,10 @@
 """Timestamped raw measurements, in SI units: what a robot's sensors give.
 
 The simulator, a hardware driver and a log replay all produce these same types, so
-any estimator runs on any of them. Times are seconds on one clock. Quaternions are
-(x, y, z, w), rotating body vectors into the world frame (z up).
+any estimator runs on any of them. Times are seconds on one clock, each a whole number
+of nanoseconds (``ns_to_seconds(n)``) as ROS stamps are, so a sample survives a trip
+through a bag bit for bit. Quaternions are (x, y, z, w), rotating body vectors into the
+world frame (z up).
 """
 
 from __future__ import annotations
@@ -23,9 +25,21 @@ __all__ = [
     "RgbdFrame",
     "Sample",
     "UwbRangeSample",
+    "ns_to_seconds",
+    "seconds_to_ns",
 ]
 
 FloatArray: TypeAlias = NDArray[np.float64]
+
+
+def seconds_to_ns(t: float) -> int:
+    """The whole number of nanoseconds nearest to ``t`` seconds."""
+    return round(t * 1e9)
+
+
+def ns_to_seconds(ns: int) -> float:
+    """Seconds for ``ns`` nanoseconds; ``seconds_to_ns`` inverts it exactly (to 2**53 ns)."""
+    return ns / 1e9
 
 
 @dataclass(frozen=True, slots=True)
@@ -39,7 +53,7 @@ class ImuSample:
     gyro: FloatArray
     """Angular rate (rad/s), (3,)."""
     mag: FloatArray
-    """Magnetic field (gauss), (3,)."""
+    """Magnetic field (T), (3,)."""
 
 
 @dataclass(frozen=True, slots=True)

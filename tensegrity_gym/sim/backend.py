@@ -212,7 +212,7 @@ class SimBackend:
         # A fresh simulation each episode: PyBullet keeps contact caches otherwise, and
         # the same seed must give the same episode bit for bit.
         world._build()
-        world.time = 0.0
+        world.time_ns = 0
         self._truth = None
         world.set_rest_lengths(d.rest_lengths)
         yaw = float(rng.uniform(-np.pi, np.pi))

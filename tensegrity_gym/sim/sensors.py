@@ -21,6 +21,8 @@ from tensegrity_gym.model.samples import (
     ImuSample,
     RgbdFrame,
     UwbRangeSample,
+    ns_to_seconds,
+    seconds_to_ns,
 )
 
 if TYPE_CHECKING:
@@ -57,21 +59,28 @@ def _conjugate(q: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 class SensorSchedule:
-    """Sample times of one sensor at a fixed rate, phase kept across control periods."""
+    """Sample times of one sensor at a fixed rate, phase kept across control periods.
+
+    The k-th time is counted from the start in whole nanoseconds (see ``seconds_to_ns``),
+    not accumulated, so stamps are exact and a rate like 15 Hz does not drift.
+    """
 
     def __init__(self, rate: float) -> None:
-        self.period = 1.0 / rate
-        self.next_time = 0.0
+        self.rate = rate
+        self.start_ns = 0
+        self.count = 0
 
     def reset(self, t: float) -> None:
-        self.next_time = t
+        self.start_ns = seconds_to_ns(t)
+        self.count = 0
 
     def due(self, t_end: float) -> list[float]:
-        """Sample times up to and including ``t_end`` (with a little slack for rounding)."""
+        """Sample times up to and including ``t_end``."""
+        end = seconds_to_ns(t_end)
         times = []
-        while self.next_time <= t_end + 1e-9:
-            times.append(self.next_time)
-            self.next_time += self.period
+        while (t_ns := self.start_ns + round(self.count * 1e9 / self.rate)) <= end:
+            times.append(ns_to_seconds(t_ns))
+            self.count += 1
         return times
 
 
@@ -309,7 +318,7 @@ class UwbModel:
             keep = rng.random(len(i)) >= self.reject_fraction
             # The snapshot closes the round: each measurement is stamped when its final
             # message arrives, so all of a round's times lie within it, none in the future.
-            times = np.asarray(snap.t - 3 * N * s + t_final[keep] + s, dtype=np.float64)
+            times = np.round((snap.t - 3 * N * s + t_final[keep] + s) * 1e9) / 1e9  # whole ns
             out.append(UwbRangeSample(snap.t, times, self.pairs[keep], m[keep]))
         return out
 

@@ -25,6 +25,7 @@ from tensegrity_gym.model.kinematics import (
     quaternion_rotate,
     rod_quaternion_from_axis,
 )
+from tensegrity_gym.model.samples import ns_to_seconds
 from tensegrity_gym.sim.cables import cable_wrenches, slew_motors
 
 if TYPE_CHECKING:
@@ -90,7 +91,9 @@ class PhysicsWorld:
         self._motor_step = speed * time_step  # m per physics step
         self.rest_lengths: list[float] = d.rest_lengths.tolist()
         self.targets: list[float] = [self.rest_lengths[k] for k in self._actuated]
-        self.time = 0.0
+        self._time_step_ns = round(time_step * 1e9)
+        self.time_ns = 0
+        """Simulated time in whole nanoseconds: stamps stay exact through a ROS bag."""
         self.bodies: list[int] = []
         self._cable_lengths: list[float] = [0.0] * d.n_cables
         self._build()
@@ -298,7 +301,7 @@ class PhysicsWorld:
                 apply_force(bodies[r], -1, wr[:3], centres[r], world_frame, physicsClientId=c)
                 apply_torque(bodies[r], -1, wr[3:], world_frame, physicsClientId=c)
             step_sim(physicsClientId=c)
-            self.time += self.time_step
+            self.time_ns += self._time_step_ns
             if snapshot_steps[step]:
                 self.rest_lengths = rest.tolist()
                 snapshots.append(self.snapshot())
@@ -311,7 +314,7 @@ class PhysicsWorld:
         for _ in range(n_steps):
             pybullet.stepSimulation(physicsClientId=self.client)
 
-    def save_state(self) -> tuple[int, list[float], list[float], list[float], float]:
+    def save_state(self) -> tuple[int, list[float], list[float], list[float], int]:
         """An in-memory checkpoint of the bodies, motors and clock."""
         state = pybullet.saveState(physicsClientId=self.client)
         return (
@@ -319,16 +322,21 @@ class PhysicsWorld:
             list(self.rest_lengths),
             list(self.targets),
             list(self._cable_lengths),
-            self.time,
+            self.time_ns,
         )
 
     def restore_state(
-        self, checkpoint: tuple[int, list[float], list[float], list[float], float]
+        self, checkpoint: tuple[int, list[float], list[float], list[float], int]
     ) -> None:
-        state, rest, targets, lengths, t = checkpoint
+        state, rest, targets, lengths, t_ns = checkpoint
         pybullet.restoreState(state, physicsClientId=self.client)
         self.rest_lengths, self.targets = list(rest), list(targets)
-        self._cable_lengths, self.time = list(lengths), t
+        self._cable_lengths, self.time_ns = list(lengths), t_ns
+
+    @property
+    def time(self) -> float:
+        """Simulated time (s), a whole number of nanoseconds."""
+        return ns_to_seconds(self.time_ns)
 
     def snapshot(self) -> Snapshot:
         pos, orn, lin, ang = self.rod_states()
