@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
 from pathlib import Path
 
@@ -47,6 +48,63 @@ def _bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _terminate(signum: int, frame: object) -> None:
+    raise SystemExit(128 + signum)  # unwinds like Ctrl-C does, so open bags get closed
+
+
+def _record(args: argparse.Namespace) -> int:
+    from agents.offline import record
+
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        paths = record(
+            args.env,
+            args.policy,
+            args.episodes,
+            Path(args.out),
+            steps=args.steps,
+            seed=args.seed,
+            estimator=args.estimator,
+        )
+    except KeyboardInterrupt:
+        log.warning("interrupted: the bag being written was closed and is complete so far")
+        return 130
+    for path in paths:
+        sys.stdout.write(f"{path}\n")
+    return 0
+
+
+def _estimate(args: argparse.Namespace) -> int:
+    from agents.offline import estimate_bag
+    from hardware.bag.reader import BagError
+    from tensegrity_gym.model.description import DescriptionError, load_robot
+
+    try:
+        description = load_robot(args.robot) if args.robot else None
+        results = estimate_bag(
+            args.bag,
+            args.estimator,
+            Path(args.out),
+            seed=args.seed,
+            description=description,
+            strict=args.strict,
+            progress=not args.no_progress,
+        )
+    except (BagError, DescriptionError, ValueError) as err:
+        log.error("%s", err)
+        return 2
+    for r in results:
+        line = f"{r['bag']}: {r['steps']} steps, {r['duration_s']:.1f} s in {r['wall_s']:.1f} s"
+        if "com_rmse_m" in r:
+            line += (
+                f"; CoM error {100 * r['com_rmse_m']:.2f} cm RMS, "
+                f"ATE {100 * r.get('ate_rmse_m', float('nan')):.2f} cm"
+            )
+        sys.stdout.write(line + "\n")
+    sys.stdout.write(f"written to {args.out}\n")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tensegrity-gym", description="Tensegrity robots with estimated-state observations."
@@ -75,6 +133,38 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)
+
+    from tensegrity_gym.envs.factory import ESTIMATORS
+
+    rec = sub.add_parser("record", help="run a policy and write each episode to a ROS 2 bag")
+    rec.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
+    rec.add_argument(
+        "--policy",
+        default="scripted",
+        help="scripted (the robot's face gait), random, or a stable-baselines3 model file",
+    )
+    rec.add_argument("--episodes", type=int, default=1)
+    rec.add_argument("--steps", type=int, default=None, help="control steps per episode")
+    rec.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
+    rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    rec.add_argument("--out", required=True, help="folder for the bags (episode_000, ...)")
+    rec.set_defaults(func=_record)
+
+    est = sub.add_parser(
+        "estimate", help="run an estimator over a bag; write its trajectory, metrics, plots"
+    )
+    est.add_argument("bag", help="a bag, or a folder of bags (one per episode)")
+    est.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    est.add_argument("--out", required=True, help="folder for the results")
+    est.add_argument("--seed", type=int, default=0, help="seeds the estimator's initial belief")
+    est.add_argument(
+        "--robot", default=None, help="robot preset or YAML, for a bag without a description"
+    )
+    est.add_argument(
+        "--strict", action="store_true", help="stop at the first bad message instead of skipping"
+    )
+    est.add_argument("--no-progress", action="store_true", help="no progress bar")
+    est.set_defaults(func=_estimate)
     return parser
 
 

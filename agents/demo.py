@@ -10,6 +10,7 @@ import gymnasium as gym
 import numpy as np
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
+from agents.plots import plot_com_paths
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -76,29 +77,7 @@ def run_gait(
     }
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-        _plot(path, np.array(est_path), out / "com_path.png", env_id)
+        plot_com_paths(path, np.array(est_path), out / "com_path.png", env_id.split("/")[-1])
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
         summary["plot"] = str(out / "com_path.png")
     return summary
-
-
-def _plot(true_path: np.ndarray, est_path: np.ndarray, file: Path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 5))
-    ax.plot(true_path[:, 0], true_path[:, 1], "-", color="tab:blue", label="true CoM")
-    ax.plot(est_path[:, 0], est_path[:, 1], "--", color="tab:orange", label="estimated CoM")
-    ax.plot(*true_path[0, :2], "o", color="tab:green", label="start")
-    ax.plot(*true_path[-1, :2], "s", color="tab:red", label="end")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
-    ax.set_title(f"{title.split('/')[-1]}: centre of mass from above")
-    fig.tight_layout()
-    fig.savefig(file, dpi=120)
-    plt.close(fig)

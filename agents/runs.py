@@ -6,7 +6,6 @@ run is recorded once, by a wrapper around the env's backend, and replayed after.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
@@ -14,6 +13,7 @@ import numpy as np
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
 from estimation.metrics import com_errors, rod_errors, shape_errors
+from hardware.recording import MemorySink, RecordedRun, RecordingBackend
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
@@ -23,67 +23,16 @@ if TYPE_CHECKING:
     from tensegrity_gym.envs.roll_env import TensegrityEnv
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.estimate import Estimate
-    from tensegrity_gym.model.protocols import Backend, Estimator, SensorCalibration, StepResult
-    from tensegrity_gym.model.samples import GroundTruth, Sample
+    from tensegrity_gym.model.protocols import Estimator
+    from tensegrity_gym.model.samples import GroundTruth
 
-__all__ = ["RecordedRun", "RecordingBackend", "record_run", "replay", "trajectory_errors"]
-
-
-@dataclass
-class RecordedStep:
-    samples: list[Sample]
-    command: NDArray[np.float64]
-    truth: GroundTruth | None
-
-
-@dataclass
-class RecordedRun:
-    """The reset samples and every control period after, with the truth where known."""
-
-    description: RobotDescription
-    calibration: SensorCalibration
-    start: RecordedStep
-    steps: list[RecordedStep] = field(default_factory=list)
-
-
-class RecordingBackend:
-    """A backend that keeps a copy of everything the wrapped one produced."""
-
-    def __init__(self, inner: Backend) -> None:
-        self.inner = inner
-        self.description = inner.description
-        self.control_period = inner.control_period
-        self.run: RecordedRun | None = None
-
-    @property
-    def calibration(self) -> SensorCalibration:
-        return self.inner.calibration
-
-    def reset(self, rng: np.random.Generator) -> StepResult:
-        result = self.inner.reset(rng)
-        d = self.description
-        start = RecordedStep(
-            list(result.samples), d.rest_lengths[d.actuated].copy(), self.inner.ground_truth()
-        )
-        self.run = RecordedRun(d, self.inner.calibration, start)
-        return result
-
-    def step(self, targets: NDArray[np.float64]) -> StepResult:
-        result = self.inner.step(targets)
-        if self.run is not None:
-            self.run.steps.append(
-                RecordedStep(list(result.samples), np.array(targets), self.inner.ground_truth())
-            )
-        return result
-
-    def ground_truth(self) -> GroundTruth | None:
-        return self.inner.ground_truth()
-
-    def render(self, width: int, height: int) -> NDArray[np.uint8]:
-        return self.inner.render(width, height)
-
-    def close(self) -> None:
-        self.inner.close()
+__all__ = [
+    "RecordedRun",
+    "estimation_errors",
+    "record_run",
+    "replay",
+    "trajectory_errors",
+]
 
 
 def record_run(
@@ -100,16 +49,15 @@ def record_run(
     """
     env = gym.make(env_id, estimator="oracle", max_episode_steps=steps + 1, **make_kwargs)
     inner = cast("TensegrityEnv", env.unwrapped)
-    recorder = RecordingBackend(inner.backend)
-    inner.backend = recorder
+    sink = MemorySink()
+    inner.backend = RecordingBackend(inner.backend, sink)
     obs, _ = env.reset(seed=seed)
     for k in range(steps):
         obs, _, terminated, truncated, _ = env.step(policy(inner, obs, k))
         if terminated or truncated:
             break
     env.close()
-    assert recorder.run is not None
-    return recorder.run
+    return sink.run
 
 
 def replay(
@@ -130,9 +78,19 @@ def replay(
 def trajectory_errors(
     run: RecordedRun, estimates: Sequence[Estimate], settle: float = 2.0
 ) -> dict[str, Any]:
-    """CoM, node, rod and shape errors of ``estimates`` against the truth, after
-    ``settle`` s (:mod:`estimation.metrics`)."""
+    """:func:`estimation_errors` of ``estimates`` replayed on ``run``."""
     truths = [run.start.truth] + [s.truth for s in run.steps]
+    return estimation_errors(run.description, estimates, truths, settle)
+
+
+def estimation_errors(
+    description: RobotDescription,
+    estimates: Sequence[Estimate],
+    truths: Sequence[GroundTruth | None],
+    settle: float = 2.0,
+) -> dict[str, Any]:
+    """CoM, node, rod and shape errors of ``estimates`` against the truth of the same
+    steps, after ``settle`` s (:mod:`estimation.metrics`); steps without truth are left out."""
     t0 = estimates[0].t
     pairs = [
         (est, truth)
@@ -145,7 +103,7 @@ def trajectory_errors(
     true_nodes = np.array([t.node_positions for _, t in pairs])
     com = com_errors(np.array([e.com for e, _ in pairs]), np.array([t.com for _, t in pairs]))
     nodes = np.linalg.norm(est_nodes - true_nodes, axis=-1)
-    rods = rod_errors(est_nodes, true_nodes, run.description.rod_nodes)
+    rods = rod_errors(est_nodes, true_nodes, description.rod_nodes)
     return {
         "com_rmse_m": round(float(np.sqrt(np.mean(com**2))), 4),
         "com_max_m": round(float(com.max()), 4),

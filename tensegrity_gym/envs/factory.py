@@ -2,19 +2,18 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from tensegrity_gym.envs.roll_env import TensegrityEnv
 from tensegrity_gym.model.description import RobotDescription, load_robot
-from tensegrity_gym.model.protocols import Estimator
+from tensegrity_gym.model.protocols import Backend, Estimator
 from tensegrity_gym.tasks.roll import RollTask
 
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from tensegrity_gym.model.protocols import Backend
 
-__all__ = ["ESTIMATORS", "make_estimator", "make_roll_env"]
+__all__ = ["ESTIMATORS", "make_backend", "make_estimator", "make_roll_env"]
 
 ESTIMATORS = ("oracle", "ukf")
 """Estimator names ``make`` accepts; more join as they are implemented."""
@@ -42,11 +41,57 @@ def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
     raise ValueError(f"unknown estimator {name!r}; valid choices: {list(ESTIMATORS)}")
 
 
+def make_backend(
+    description: RobotDescription,
+    driver: str | Backend | None,
+    *,
+    control_period: float,
+    time_step: float,
+    gui: bool,
+    spawn_radius: float,
+) -> Backend:
+    """The backend a ``driver`` names: None for PyBullet, ``"bag:PATH"`` to replay a
+    recorded bag, or a Backend object (its robot must be ``description``'s)."""
+    if driver is None:
+        from tensegrity_gym.sim.backend import SimBackend
+
+        return SimBackend(
+            description,
+            control_period=control_period,
+            time_step=time_step,
+            gui=gui,
+            spawn_radius=spawn_radius,
+        )
+    if isinstance(driver, str):
+        if not driver.startswith("bag:") or len(driver) == 4:
+            raise ValueError(
+                f"driver={driver!r}: expected None (PyBullet), 'bag:PATH' (replay a recorded "
+                "bag) or a Backend object"
+            )
+        from hardware.bag.replay import ReplayBackend
+
+        backend: Backend = ReplayBackend(driver[4:])
+    elif isinstance(driver, Backend):
+        backend = driver
+    else:
+        raise TypeError(
+            f"driver must be None, 'bag:PATH' or a Backend object; got {type(driver).__name__}"
+        )
+    if backend.description.name != description.name:
+        backend.close()
+        raise ValueError(
+            f"driver {driver!r} runs the robot {backend.description.name!r}, but this env is "
+            f"for {description.name!r}; make the env of that robot"
+        )
+    return backend
+
+
 def make_roll_env(
     robot: str | Path | RobotDescription = "three_bar",
     *,
     estimator: str | Estimator = "ukf",
-    driver: Any = None,
+    driver: str | Backend | None = None,
+    record_dir: str | Path | None = None,
     render_mode: str | None = None,
     goal_heading: float | None = 0.0,
     goal_distance: float | None = None,
@@ -61,33 +106,40 @@ def make_roll_env(
         robot: a preset name, a YAML path or a loaded description.
         estimator: ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
             ``"oracle"`` (ground truth, simulation only) or an Estimator object.
-        driver: ``None`` for the PyBullet simulation. Hardware drivers are not part of
-            this release; anything else is rejected.
+        driver: ``None`` for the PyBullet simulation, ``"bag:PATH"`` to replay a recorded
+            bag (its commands drive it; the policy's actions are ignored), or a Backend
+            object. The driver's robot must be this env's.
+        record_dir: write every episode to a ROS 2 bag in this folder (``episode_000``,
+            ...): samples, commands, ground truth and estimates.
         render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (PyBullet's window).
         goal_heading, goal_distance, ctrl_cost: see :class:`RollTask`.
         spawn_radius: the start position is drawn within this radius (m).
         control_period, time_step: seconds per env step and per physics step.
     """
     description = robot if isinstance(robot, RobotDescription) else load_robot(robot)
-    if driver is not None:
-        raise ValueError(
-            f"driver={driver!r}: no hardware driver is available in this release; "
-            "use driver=None for the PyBullet simulation"
-        )
-    from tensegrity_gym.sim.backend import SimBackend
-
     est_name = estimator if isinstance(estimator, str) else None
     if est_name is not None and est_name not in ESTIMATORS:
         raise ValueError(f"unknown estimator {est_name!r}; valid choices: {list(ESTIMATORS)}")
-    backend = SimBackend(
+    backend = make_backend(
         description,
+        driver,
         control_period=control_period,
         time_step=time_step,
         gui=render_mode == "human",
         spawn_radius=spawn_radius,
     )
     est = make_estimator(estimator, backend)
-    backend.camera = est.needs_camera
+    if hasattr(backend, "camera"):  # the simulator renders frames only when they are used
+        backend.camera = est.needs_camera
+    if record_dir is not None:
+        from hardware.recording import BagSink, RecordingBackend, RecordingEstimator
+
+        sink = BagSink(
+            record_dir,
+            {"robot": description.name, "estimator": est_name or type(estimator).__name__},
+        )
+        backend = RecordingBackend(backend, sink)
+        est = RecordingEstimator(est, sink, backend)
     task = RollTask(
         description, goal_heading=goal_heading, goal_distance=goal_distance, ctrl_cost=ctrl_cost
     )

@@ -140,6 +140,9 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             info = self._info(self._estimate, diverged=True)
             info.update(result.info)
             return self._observation, 0.0, False, True, info
+        if result.command is not None:  # e.g. a replayed log drives itself
+            targets = np.asarray(result.command, dtype=np.float64)
+            a = self.targets_to_action(targets).astype(np.float64)
         previous = self._estimate
         estimate = self.estimator.update(result.samples, targets)
         self._estimate = estimate
@@ -151,7 +154,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         info.update(result.info)
         if self.render_mode == "human":
             self.render()
-        return self._observation, float(reward), self.task.terminated(estimate), False, info
+        terminated = self.task.terminated(estimate)
+        return self._observation, float(reward), terminated, result.ended and not terminated, info
 
     def render(self) -> NDArray[np.uint8] | None:
         if self.render_mode is None:

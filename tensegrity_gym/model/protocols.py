@@ -42,6 +42,11 @@ class StepResult:
     diverged: bool = False
     """The backend's state became non-finite or absurd; the episode must end."""
     info: dict[str, object] = field(default_factory=dict)
+    command: NDArray[np.float64] | None = None
+    """The rest-length targets (m), (m,), that actually drove the period, where they
+    differ from the ones asked for (a replayed log's recorded command); None: as asked."""
+    ended: bool = False
+    """The source has nothing after this period (a log's end); the episode is truncated."""
 
 
 @runtime_checkable

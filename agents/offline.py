@@ -1,0 +1,291 @@
+"""Recording runs to bags, and running estimators over bags offline.
+
+``record`` drives an env with a policy and writes one bag per episode; ``estimate``
+replays a bag through an estimator and writes its trajectory (TUM, which evo reads),
+metrics against the ground truth where the bag has it, and plots.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
+
+import gymnasium as gym
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+import tensegrity_gym  # noqa: F401  (registers the envs)
+from agents.plots import plot_com_paths, plot_errors
+from agents.runs import estimation_errors
+from estimation.metrics import body_poses, trajectory_errors
+from hardware.bag.reader import find_bags
+from hardware.bag.replay import ReplayBackend
+from hardware.recording import hold_command
+from tensegrity_gym.envs.factory import ESTIMATORS, make_estimator
+from tensegrity_gym.tasks.gaits import FaceGait
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.envs.roll_env import TensegrityEnv
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.estimate import Estimate
+    from tensegrity_gym.model.samples import GroundTruth
+
+__all__ = ["POLICIES", "estimate_bag", "make_policy", "record", "write_tum"]
+
+log = logging.getLogger(__name__)
+
+POLICIES = ("scripted", "random")
+"""Built-in policies; a path to a stable-baselines3 model zip is the third kind."""
+
+Policy = Callable[[np.ndarray], np.ndarray]
+
+
+def make_policy(name: str, env: gym.Env[Any, Any], seed: int) -> tuple[Policy, Callable[[], None]]:
+    """(policy, reset) for ``scripted`` (the robot's face gait), ``random`` (uniform
+    actions from a generator seeded with ``seed``) or a stable-baselines3 model file."""
+    inner = cast("TensegrityEnv", env.unwrapped)
+    if name == "scripted":
+        gait = FaceGait(inner.backend.description, inner.task)
+        return gait, gait.reset
+    if name == "random":
+        rng = np.random.default_rng(seed)
+        low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+
+        def random_policy(obs: np.ndarray) -> np.ndarray:
+            return np.asarray(rng.uniform(low, high), dtype=np.float32)
+
+        return random_policy, lambda: None
+    path = Path(name)
+    if not path.exists():
+        raise ValueError(
+            f"policy {name!r}: not one of {list(POLICIES)} and no model file at that path"
+        )
+    return _load_model(path), lambda: None
+
+
+def _load_model(path: Path) -> Policy:
+    """A stable-baselines3 model's deterministic policy; the algorithm is found by trying."""
+    try:
+        import stable_baselines3 as sb3
+    except ImportError as err:  # pragma: no cover - sb3 is in the rl extra
+        raise ValueError(f"policy {path}: loading a model needs stable-baselines3") from err
+    errors = []
+    for algo in (sb3.PPO, sb3.SAC, sb3.TD3, sb3.A2C, sb3.DDPG):
+        try:
+            model = algo.load(path, device="cpu")
+        except Exception as err:  # each wrong algorithm fails in its own way
+            errors.append(f"{algo.__name__}: {err}")
+            continue
+        return _ModelPolicy(model)
+    raise ValueError(f"policy {path}: not a stable-baselines3 model ({'; '.join(errors)})")
+
+
+class _ModelPolicy:
+    def __init__(self, model: Any) -> None:
+        self.model = model
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        action, _ = self.model.predict(obs, deterministic=True)
+        return np.asarray(action, dtype=np.float32)
+
+
+def record(
+    env_id: str,
+    policy: str,
+    episodes: int,
+    out: Path,
+    *,
+    steps: int | None = None,
+    seed: int = 0,
+    estimator: str = "ukf",
+    flush_period: float = 1.0,
+) -> list[Path]:
+    """Run ``episodes`` episodes of ``policy`` on ``env_id`` and write one bag each into
+    ``out``. Returns the bags written. An interruption (Ctrl-C, SIGTERM) closes the
+    current bag properly before it propagates."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    kwargs: dict[str, Any] = {"estimator": estimator, "record_dir": out}
+    if steps is not None:
+        kwargs["max_episode_steps"] = steps
+    env = gym.make(env_id, **kwargs)
+    inner = cast("TensegrityEnv", env.unwrapped)
+    backend = inner.backend
+    sink = backend.sink  # type: ignore[attr-defined]
+    sink.flush_period = flush_period
+    sink.run_info.update({"env": env_id, "policy": policy, "seed": seed})
+    act, reset_policy = make_policy(policy, env, seed)
+    try:
+        for episode in range(episodes):
+            obs, _ = env.reset(seed=seed + episode)
+            reset_policy()
+            done = False
+            while not done:
+                obs, _, terminated, truncated, _ = env.step(act(obs))
+                done = terminated or truncated
+            log.info("episode %d: %.1f s recorded", episode, backend.t_command)  # type: ignore[attr-defined]
+    finally:
+        env.close()  # closes the bag being written, even on Ctrl-C
+    return list(sink.paths)
+
+
+def write_tum(file: Path, t: NDArray[np.float64], poses: NDArray[np.float64]) -> None:
+    """A TUM trajectory: ``t x y z qx qy qz qw`` per line, poses (T, 4, 4)."""
+    quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # (x, y, z, w)
+    rows = np.column_stack([t, poses[:, :3, 3], quats])
+    np.savetxt(file, rows, fmt="%.9f", header="timestamp tx ty tz qx qy qz qw")
+
+
+def _run_estimator(
+    backend: ReplayBackend, estimator: str, seed: int, progress: bool
+) -> tuple[list[Estimate], list[GroundTruth | None]]:
+    from tqdm import tqdm
+
+    est = make_estimator(estimator, backend)
+    d = backend.description
+    rng = np.random.default_rng(seed)
+    start = backend.reset(rng)
+    estimates = [est.reset(d, backend.calibration, start.samples, hold_command(d), rng)]
+    truths = [backend.ground_truth()]
+    ended = start.ended
+    bar = tqdm(
+        total=backend.steps_total,
+        disable=not progress,
+        unit="step",
+        desc=Path(backend.reader.path).name,
+        leave=False,
+    )
+    with bar:
+        while not ended:
+            command = backend.next_command
+            assert command is not None
+            result = backend.step(command)
+            estimates.append(est.update(result.samples, command))
+            truths.append(backend.ground_truth())
+            ended = result.ended
+            bar.update()
+    return estimates, truths
+
+
+def estimate_bag(
+    bag: str | Path,
+    estimator: str,
+    out: Path,
+    *,
+    seed: int = 0,
+    description: RobotDescription | None = None,
+    strict: bool = False,
+    settle: float = 2.0,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Run ``estimator`` over every bag at ``bag`` (one bag, or a folder of episodes).
+
+    Writes per bag, into ``out`` (``out/<bag name>`` for a folder of several):
+    ``estimate.tum`` (the body frame of :func:`estimation.metrics.body_poses`, origin at
+    the CoM), ``truth.tum`` and ``metrics.json`` (errors against the ground truth, where
+    the bag has it), ``com_path.png``, ``error.png`` (with truth) and ``estimates.npz``.
+    Returns the metrics of each bag.
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"unknown estimator {estimator!r}; valid choices: {list(ESTIMATORS)}")
+    bags = find_bags(bag)
+    results = []
+    for path in bags:
+        folder = out if len(bags) == 1 else out / path.name
+        results.append(
+            _estimate_one(path, estimator, folder, seed, description, strict, settle, progress)
+        )
+    return results
+
+
+def _estimate_one(
+    path: Path,
+    estimator: str,
+    out: Path,
+    seed: int,
+    description: RobotDescription | None,
+    strict: bool,
+    settle: float,
+    progress: bool,
+) -> dict[str, Any]:
+    backend = ReplayBackend(path, description=description, strict=strict)
+    try:
+        if estimator == "oracle" and not backend.reader.has_truth:
+            raise ValueError(f"{path}: estimator 'oracle' needs ground truth; the bag has none")
+        wall = time.perf_counter()
+        estimates, truths = _run_estimator(backend, estimator, seed, progress)
+        wall = time.perf_counter() - wall
+    finally:
+        backend.close()
+    d = backend.description
+    out.mkdir(parents=True, exist_ok=True)
+    t = np.array([e.t for e in estimates])
+    nodes = np.array([e.node_positions for e in estimates])
+    com = np.array([e.com for e in estimates])
+    finite = np.all(np.isfinite(nodes), axis=(1, 2))
+    poses = body_poses(nodes[finite], d.rod_nodes, d.node_masses)
+    write_tum(out / "estimate.tum", t[finite], poses)
+    duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
+    metrics: dict[str, Any] = {
+        "bag": str(path),
+        "robot": d.name,
+        "estimator": estimator,
+        "seed": seed,
+        "steps": len(estimates) - 1,
+        "duration_s": round(duration, 3),
+        "wall_s": round(wall, 3),
+        "realtime_factor": round(duration / wall, 1) if wall > 0 else None,
+        "recovered_bag": backend.reader.recovered,
+        "skipped_messages": dict(backend.reader.skipped),
+        "reinitialisations": int(sum(e.reinitialised for e in estimates)),
+        "finite": bool(finite.all()),
+    }
+    has_truth = [x is not None for x in truths]
+    true_com = None
+    if any(has_truth):
+        keep = [i for i, ok in enumerate(has_truth) if ok and finite[i]]
+        true_nodes = np.array([cast("GroundTruth", truths[i]).node_positions for i in keep])
+        true_com = np.array([cast("GroundTruth", truths[i]).com for i in keep])
+        true_poses = body_poses(true_nodes, d.rod_nodes, d.node_masses)
+        write_tum(out / "truth.tum", t[keep], true_poses)
+        metrics.update(estimation_errors(d, estimates, truths, settle))
+        if len(keep) > 2:
+            est_poses = body_poses(nodes[keep], d.rod_nodes, d.node_masses)
+            traj = trajectory_errors(est_poses, true_poses)
+            metrics.update(
+                ate_rmse_m=round(traj.ate_rmse, 4),
+                rpe_rmse_m=round(traj.rpe_rmse, 4),
+                final_drift_m=round(traj.final_drift, 4),
+                path_length_m=round(traj.path_length, 4),
+                drift_percent=round(traj.drift_percentage, 2),
+            )
+        errors = np.linalg.norm(com[keep] - true_com, axis=-1)
+        node_rms = np.sqrt(np.mean(np.sum((nodes[keep] - true_nodes) ** 2, axis=-1), axis=-1))
+        marks = t[[i for i in keep if estimates[i].reinitialised]]
+        plot_errors(
+            t[keep] - t[0],
+            {"CoM error": errors, "node RMS error": node_rms},
+            out / "error.png",
+            f"{path.name}: {estimator} against the ground truth",
+            marks - t[0],
+        )
+        true_com_path = true_com
+    else:
+        true_com_path = None
+    plot_com_paths(true_com_path, com[finite], out / "com_path.png", f"{path.name} ({estimator})")
+    np.savez_compressed(
+        out / "estimates.npz",
+        t=t,
+        node_positions=nodes,
+        com=com,
+        healthy=np.array([e.healthy for e in estimates]),
+        reinitialised=np.array([e.reinitialised for e in estimates]),
+    )
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
+    return metrics

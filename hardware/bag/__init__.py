@@ -1,0 +1,15 @@
+"""Runs as ROS 2 bags (MCAP storage): writing, reading, and replay behind ``Backend``."""
+
+from hardware.bag.reader import BagError, BagPeriod, BagReader, find_bags, read_run
+from hardware.bag.replay import ReplayBackend
+from hardware.bag.writer import BagWriter
+
+__all__ = [
+    "BagError",
+    "BagPeriod",
+    "BagReader",
+    "BagWriter",
+    "ReplayBackend",
+    "find_bags",
+    "read_run",
+]

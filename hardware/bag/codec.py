@@ -1,0 +1,532 @@
+"""Samples, commands, ground truth and estimates to ROS 2 messages and back, for one robot.
+
+Everything that names a rod, a cable or a node goes through the robot description,
+so the same codec serves the bag writer, the bag reader and (later) the robot link.
+Decoding validates what it reads: a wrong size, an unknown name or a value that is not
+finite raises :class:`MessageError`, which the callers count or report with the topic
+and time.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from hardware.bag import messages as m
+from tensegrity_gym.model.description import dump_robot
+from tensegrity_gym.model.estimate import Estimate
+from tensegrity_gym.model.kinematics import rod_axes, rod_centres, rod_quaternion_from_axis
+from tensegrity_gym.model.protocols import SensorCalibration
+from tensegrity_gym.model.samples import (
+    AhrsSample,
+    CableLengthSample,
+    ContactSample,
+    EncoderSample,
+    GroundTruth,
+    ImuSample,
+    RgbdFrame,
+    UwbRangeSample,
+    ns_to_seconds,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Mapping, Sequence
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.samples import Sample
+
+__all__ = ["Encoded", "MessageError", "RobotCodec"]
+
+Encoded = tuple[str, bytes]
+Raw = bytes | memoryview
+Vec = NDArray[np.float64]
+"""(topic, CDR bytes)."""
+
+WORLD_FRAME = "world"
+CAMERA_FRAME = "camera"
+
+
+class MessageError(ValueError):
+    """A message could not be turned into a sample; the text says why."""
+
+
+def _finite_values(values: tuple[float, ...], what: str) -> None:
+    if not all(map(math.isfinite, values)):
+        raise MessageError(f"{what} is not finite")
+
+
+def _finite(values: NDArray[Any], what: str) -> NDArray[Any]:
+    if not np.all(np.isfinite(values)):
+        raise MessageError(f"{what} is not finite")
+    return values
+
+
+class RobotCodec:
+    """Encoders and decoders of one robot's messages (see :mod:`hardware.bag.messages`)."""
+
+    def __init__(self, description: RobotDescription) -> None:
+        d = description
+        self.description = d
+        self.topics = m.TopicTable.for_robot(d)
+        self.store = m.typestore()
+        t = self.store.types
+        self._Time, self._Header = t["builtin_interfaces/msg/Time"], t["std_msgs/msg/Header"]
+        self._Point, self._Vector3 = t["geometry_msgs/msg/Point"], t["geometry_msgs/msg/Vector3"]
+        self._Pose, self._Quaternion = (
+            t["geometry_msgs/msg/Pose"],
+            t["geometry_msgs/msg/Quaternion"],
+        )
+        self.rod_names = [r.name for r in d.rods]
+        self.node_names = [n.name for n in d.nodes]
+        self.cable_names = [c.name for c in d.cables]
+        self.actuated_names = [self.cable_names[k] for k in d.actuated]
+        self._node_index = {name: i for i, name in enumerate(self.node_names)}
+        self._cable_index = {name: k for k, name in enumerate(self.cable_names)}
+        self._actuated_index = {name: k for k, name in enumerate(self.actuated_names)}
+        self.n_modules = d.n_nodes + len(d.anchors)
+        self._imu_topics = [
+            (self.topics.rod_topic("imu_raw", r), self.topics.rod_topic("imu_mag", r))
+            for r in range(d.n_rods)
+        ]
+        self._ahrs_topics = [self.topics.rod_topic("ahrs", r) for r in range(d.n_rods)]
+
+    # ------------------------------------------------------------------ helpers
+
+    def _header(self, t: float, frame_id: str = "") -> Any:
+        sec, nanosec = m.stamp(t)
+        return self._Header(stamp=self._Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+    def _serialize(self, msg: Any, msgtype: str) -> bytes:
+        return bytes(self.store.serialize_cdr(msg, msgtype))
+
+    def _points(self, xyz: NDArray[np.float64], kind: Any) -> list[Any]:
+        return [kind(x=float(a), y=float(b), z=float(c)) for a, b, c in np.asarray(xyz)]
+
+    def _joint_state(self, t: float, names: Sequence[str], values: NDArray[np.float64]) -> bytes:
+        msg = self.store.types[m.JOINT_STATE](
+            header=self._header(t),
+            name=list(names),
+            position=np.asarray(values, dtype=np.float64),
+            velocity=np.empty(0),
+            effort=np.empty(0),
+        )
+        return self._serialize(msg, m.JOINT_STATE)
+
+    def _pose_array(self, t: float, centres: Vec, quats: Vec) -> bytes:
+        poses = [
+            self._Pose(
+                position=self._Point(x=float(p[0]), y=float(p[1]), z=float(p[2])),
+                orientation=self._Quaternion(
+                    x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
+                ),
+            )
+            for p, q in zip(centres, quats, strict=True)
+        ]
+        msg = self.store.types[m.POSE_ARRAY](header=self._header(t, WORLD_FRAME), poses=poses)
+        return self._serialize(msg, m.POSE_ARRAY)
+
+    def _state(
+        self,
+        t: float,
+        nodes: NDArray[np.float64],
+        velocities: NDArray[np.float64],
+        com: NDArray[np.float64],
+        rest_lengths: NDArray[np.float64],
+        healthy: bool = True,
+        reinitialised: bool = False,
+    ) -> bytes:
+        msg = self.store.types[m.STATE](
+            header=self._header(t, WORLD_FRAME),
+            node_positions=self._points(nodes, self._Point),
+            node_velocities=self._points(velocities, self._Vector3),
+            center_of_mass=self._Point(x=float(com[0]), y=float(com[1]), z=float(com[2])),
+            rest_lengths=np.asarray(rest_lengths, dtype=np.float64),
+            healthy=bool(healthy),
+            reinitialised=bool(reinitialised),
+        )
+        return self._serialize(msg, m.STATE)
+
+    # ------------------------------------------------------------------ encoding
+
+    def encode_header(
+        self, calibration: SensorCalibration, run_info: Mapping[str, Any], t: float
+    ) -> list[Encoded]:
+        """The messages that make a bag self-contained: description, run info, calibration."""
+        d = self.description
+        string = self.store.types[m.STRING]
+        cam = d.sensors.camera
+        k = np.asarray(calibration.camera_intrinsics, dtype=np.float64)
+        p = np.zeros((3, 4))
+        p[:, :3] = k
+        info = self.store.types[m.CAMERA_INFO](
+            header=self._header(t, CAMERA_FRAME),
+            height=cam.height,
+            width=cam.width,
+            distortion_model="plumb_bob",
+            d=np.zeros(5),
+            k=k.reshape(9),
+            r=np.eye(3).reshape(9),
+            p=p.reshape(12),
+            binning_x=0,
+            binning_y=0,
+            roi=self.store.types["sensor_msgs/msg/RegionOfInterest"](
+                x_offset=0, y_offset=0, height=0, width=0, do_rectify=False
+            ),
+        )
+        calib = self.store.types[m.CALIBRATION](
+            header=self._header(t, WORLD_FRAME),
+            anchors=self._points(np.asarray(calibration.anchors).reshape(-1, 3), self._Point),
+            n_modules=int(calibration.uwb_offsets.shape[0]),
+            uwb_offsets=np.asarray(calibration.uwb_offsets, dtype=np.float64).reshape(-1),
+            camera_pose=np.asarray(calibration.camera_pose, dtype=np.float64).reshape(16),
+        )
+        run_text = yaml.safe_dump(dict(run_info), sort_keys=True)
+        return [
+            ("/robot_description", self._serialize(string(data=dump_robot(d)), m.STRING)),
+            ("/tensegrity/run_info", self._serialize(string(data=run_text), m.STRING)),
+            ("/tensegrity/calibration", self._serialize(calib, m.CALIBRATION)),
+            ("/camera/camera_info", self._serialize(info, m.CAMERA_INFO)),
+        ]
+
+    def encode_sample(self, sample: Sample) -> list[Encoded]:
+        if isinstance(sample, ImuSample):
+            raw_topic, mag_topic = self._imu_topics[sample.rod]
+            frame = self.rod_names[sample.rod]
+            return [
+                (raw_topic, m.encode_imu(sample.t, frame, gyro=sample.gyro, accel=sample.accel)),
+                (mag_topic, m.encode_magnetic_field(sample.t, frame, sample.mag)),
+            ]
+        if isinstance(sample, AhrsSample):
+            frame = self.rod_names[sample.rod]
+            raw = m.encode_imu(sample.t, frame, orientation=sample.quaternion)
+            return [(self._ahrs_topics[sample.rod], raw)]
+        if isinstance(sample, EncoderSample):
+            raw = self._joint_state(sample.t, self.actuated_names, sample.rest_lengths)
+            return [("/motors/rest_lengths", raw)]
+        if isinstance(sample, CableLengthSample):
+            return [
+                ("/cables/lengths", self._joint_state(sample.t, self.cable_names, sample.lengths))
+            ]
+        if isinstance(sample, UwbRangeSample):
+            uwb_range = self.store.types["tensegrity_msgs/msg/UwbRange"]
+            ranges = []
+            for t, (i, j), r in zip(sample.times, sample.pairs, sample.ranges, strict=True):
+                sec, nanosec = m.stamp(float(t))
+                ranges.append(
+                    uwb_range(
+                        stamp=self._Time(sec=sec, nanosec=nanosec),
+                        initiator=int(i),
+                        responder=int(j),
+                        range=float(r),
+                    )
+                )
+            msg = self.store.types[m.UWB_RANGES](header=self._header(sample.t), ranges=ranges)
+            return [("/uwb/ranges", self._serialize(msg, m.UWB_RANGES))]
+        if isinstance(sample, ContactSample):
+            msg = self.store.types[m.CONTACTS](
+                header=self._header(sample.t),
+                nodes=list(self.node_names),
+                in_contact=np.asarray(sample.in_contact, dtype=np.bool_),
+            )
+            return [("/contacts", self._serialize(msg, m.CONTACTS))]
+        if isinstance(sample, RgbdFrame):
+            image = self.store.types[m.IMAGE]
+            h, w = sample.depth.shape
+            rgb = image(
+                header=self._header(sample.t, CAMERA_FRAME),
+                height=h,
+                width=w,
+                encoding="rgb8",
+                is_bigendian=0,
+                step=3 * w,
+                data=np.ascontiguousarray(sample.rgb, dtype=np.uint8).reshape(-1),
+            )
+            depth = image(
+                header=self._header(sample.t, CAMERA_FRAME),
+                height=h,
+                width=w,
+                encoding="32FC1",
+                is_bigendian=0,
+                step=4 * w,
+                data=np.ascontiguousarray(sample.depth, dtype="<f4").view(np.uint8).reshape(-1),
+            )
+            return [
+                ("/camera/color/image_raw", self._serialize(rgb, m.IMAGE)),
+                ("/camera/depth/image_raw", self._serialize(depth, m.IMAGE)),
+            ]
+        raise TypeError(f"no message for a sample of type {type(sample).__name__}")
+
+    def encode_command(self, t: float, targets: NDArray[np.float64]) -> Encoded:
+        return ("/commands/rest_length_targets", self._joint_state(t, self.actuated_names, targets))
+
+    def encode_truth(self, truth: GroundTruth) -> list[Encoded]:
+        return [
+            (
+                "/ground_truth/rod_poses",
+                self._pose_array(truth.t, truth.rod_positions, truth.rod_quaternions),
+            ),
+            (
+                "/ground_truth/state",
+                self._state(
+                    truth.t,
+                    truth.node_positions,
+                    truth.node_velocities,
+                    truth.com,
+                    truth.rest_lengths,
+                ),
+            ),
+        ]
+
+    def encode_estimate(self, estimate: Estimate) -> list[Encoded]:
+        x = estimate.node_positions
+        rod_nodes = self.description.rod_nodes
+        centres = rod_centres(x, rod_nodes)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            quats = rod_quaternion_from_axis(rod_axes(x, rod_nodes))
+        return [
+            ("/estimate/rod_poses", self._pose_array(estimate.t, centres, quats)),
+            (
+                "/estimate/state",
+                self._state(
+                    estimate.t,
+                    x,
+                    estimate.node_velocities,
+                    estimate.com,
+                    estimate.rest_lengths,
+                    estimate.healthy,
+                    estimate.reinitialised,
+                ),
+            ),
+        ]
+
+    # ------------------------------------------------------------------ decoding
+
+    def deserialize(self, raw: Raw, msgtype: str) -> Any:
+        try:
+            return self.store.deserialize_cdr(raw, msgtype)
+        except Exception as err:  # rosbags raises assorted errors on bad bytes
+            raise MessageError(f"cannot decode {len(raw)} bytes as {msgtype}: {err}") from None
+
+    def _names_to_values(
+        self, msg: Any, index: dict[str, int], names: list[str], what: str
+    ) -> NDArray[np.float64]:
+        position = np.asarray(msg.position, dtype=np.float64)
+        if list(msg.name) == names and position.shape == (len(names),):
+            return _finite(position.copy(), what)
+        if len(msg.name) != len(position):
+            raise MessageError(f"{len(msg.name)} names but {len(position)} positions")
+        out = np.full(len(names), np.nan)
+        for name, value in zip(msg.name, position, strict=True):
+            if name not in index:
+                raise MessageError(f"unknown {what} {name!r}; the robot has {names}")
+            out[index[name]] = value
+        missing = [names[k] for k in np.flatnonzero(np.isnan(out))]
+        if missing:
+            raise MessageError(f"no value for {what} {missing}")
+        return _finite(out, what)
+
+    def decode_joint_state(self, raw: Raw, kind: str) -> tuple[int, Vec]:
+        """(stamp ns, values) of a JointState over the ``actuated`` cables or ``all`` cables."""
+        msg = self.deserialize(raw, m.JOINT_STATE)
+        if kind == "actuated":
+            values = self._names_to_values(msg, self._actuated_index, self.actuated_names, "cable")
+        else:
+            values = self._names_to_values(msg, self._cable_index, self.cable_names, "cable")
+        return m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec), values
+
+    def decode_imu_raw(self, raw: Raw) -> tuple[int, Vec, Vec]:
+        """(stamp ns, gyro (3,), accel (3,))."""
+        ns, _, _, gyro, accel, provided = m.decode_imu(raw)
+        if not (provided[1] and provided[2]):
+            raise MessageError("the IMU message has no angular velocity or acceleration")
+        _finite_values(gyro + accel, "gyro or acceleration")
+        return ns, np.array(gyro), np.array(accel)
+
+    def decode_mag(self, raw: Raw) -> tuple[int, Vec]:
+        ns, _, field = m.decode_magnetic_field(raw)
+        _finite_values(field, "magnetic field")
+        return ns, np.array(field)
+
+    def decode_ahrs(self, raw: Raw) -> tuple[int, Vec]:
+        ns, _, q, _, _, provided = m.decode_imu(raw)
+        if not provided[0]:
+            raise MessageError(
+                "no orientation in the AHRS message (orientation_covariance[0] = -1)"
+            )
+        _finite_values(q, "orientation")
+        norm = math.sqrt(sum(v * v for v in q))
+        if not 0.9 < norm < 1.1:
+            raise MessageError(f"orientation quaternion has norm {norm:.3g}, not 1")
+        return ns, np.array(q)
+
+    def decode_uwb(self, raw: Raw) -> UwbRangeSample:
+        msg = self.deserialize(raw, m.UWB_RANGES)
+        k = len(msg.ranges)
+        pairs = np.empty((k, 2), dtype=np.intp)
+        ranges = np.empty(k)
+        times = np.empty(k)
+        for n, r in enumerate(msg.ranges):
+            pairs[n] = r.initiator, r.responder
+            ranges[n] = r.range
+            times[n] = ns_to_seconds(m.stamp_ns(r.stamp.sec, r.stamp.nanosec))
+        if k and pairs.max() >= self.n_modules:
+            raise MessageError(
+                f"module id {int(pairs.max())} out of range: the robot has {self.n_modules} "
+                "UWB modules (its nodes, then its anchors)"
+            )
+        _finite(ranges, "range")
+        t = ns_to_seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec))
+        return UwbRangeSample(t, times, pairs, ranges)
+
+    def decode_contacts(self, raw: Raw) -> ContactSample:
+        msg = self.deserialize(raw, m.CONTACTS)
+        flags = np.asarray(msg.in_contact, dtype=np.bool_)
+        if list(msg.nodes) == self.node_names and flags.shape == (len(self.node_names),):
+            in_contact = flags.copy()
+        else:
+            if len(msg.nodes) != len(flags):
+                raise MessageError(f"{len(msg.nodes)} node names but {len(flags)} flags")
+            unknown = [n for n in msg.nodes if n not in self._node_index]
+            if unknown or len(set(msg.nodes)) != len(self.node_names):
+                raise MessageError(
+                    f"contact flags for nodes {list(msg.nodes)}; the robot has {self.node_names}"
+                )
+            in_contact = np.zeros(len(self.node_names), dtype=np.bool_)
+            for name, flag in zip(msg.nodes, flags, strict=True):
+                in_contact[self._node_index[name]] = flag
+        t = ns_to_seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec))
+        return ContactSample(t, in_contact)
+
+    def decode_image(self, raw: Raw, kind: str) -> tuple[int, NDArray[Any]]:
+        """(stamp ns, image): ``color`` gives (H, W, 3) uint8, ``depth`` (H, W) float32."""
+        msg = self.deserialize(raw, m.IMAGE)
+        h, w = int(msg.height), int(msg.width)
+        want = ("rgb8", 3 * w, 3) if kind == "color" else ("32FC1", 4 * w, 4)
+        if msg.encoding != want[0]:
+            raise MessageError(f"image encoding {msg.encoding!r}; expected {want[0]!r}")
+        if msg.is_bigendian and kind == "depth":
+            raise MessageError("big-endian depth images are not supported")
+        if msg.step != want[1] or len(msg.data) != h * want[1]:
+            raise MessageError(
+                f"{len(msg.data)} bytes with step {msg.step} for a {w}x{h} {msg.encoding} image"
+            )
+        data = np.asarray(msg.data, dtype=np.uint8)
+        image = data.reshape(h, w, 3) if kind == "color" else data.view("<f4").reshape(h, w)
+        return m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec), image
+
+    def decode_state(self, raw: Raw) -> tuple[float, Any]:
+        """(time, message) of a TensegrityState, its arrays checked against the robot."""
+        msg = self.deserialize(raw, m.STATE)
+        n = self.description.n_nodes
+        if len(msg.node_positions) != n or len(msg.node_velocities) != n:
+            raise MessageError(
+                f"{len(msg.node_positions)} node positions and {len(msg.node_velocities)} "
+                f"velocities; the robot has {n} nodes"
+            )
+        return ns_to_seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)), msg
+
+    @staticmethod
+    def _xyz(points: Sequence[Any]) -> NDArray[np.float64]:
+        return np.array([[p.x, p.y, p.z] for p in points], dtype=np.float64).reshape(-1, 3)
+
+    def decode_truth(self, state_raw: Raw, poses_raw: Raw) -> GroundTruth:
+        t, state = self.decode_state(state_raw)
+        poses = self.deserialize(poses_raw, m.POSE_ARRAY)
+        if len(poses.poses) != self.description.n_rods:
+            raise MessageError(
+                f"{len(poses.poses)} rod poses; the robot has {self.description.n_rods} rods"
+            )
+        return GroundTruth(
+            t=t,
+            node_positions=self._xyz(state.node_positions),
+            node_velocities=self._xyz(state.node_velocities),
+            rod_positions=self._xyz([p.position for p in poses.poses]),
+            rod_quaternions=np.array(
+                [
+                    [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
+                    for p in poses.poses
+                ],
+                dtype=np.float64,
+            ),
+            com=self._xyz([state.center_of_mass])[0],
+            rest_lengths=np.asarray(state.rest_lengths, dtype=np.float64).copy(),
+        )
+
+    def decode_estimate(self, raw: Raw) -> Estimate:
+        t, state = self.decode_state(raw)
+        return Estimate(
+            t=t,
+            node_positions=self._xyz(state.node_positions),
+            node_velocities=self._xyz(state.node_velocities),
+            com=self._xyz([state.center_of_mass])[0],
+            rest_lengths=np.asarray(state.rest_lengths, dtype=np.float64).copy(),
+            healthy=bool(state.healthy),
+            reinitialised=bool(state.reinitialised),
+        )
+
+    def decode_calibration(self, raw: Raw, camera_info_raw: Raw | None) -> SensorCalibration:
+        msg = self.deserialize(raw, m.CALIBRATION)
+        n = int(msg.n_modules)
+        offsets = np.asarray(msg.uwb_offsets, dtype=np.float64)
+        if offsets.size != n * n:
+            raise MessageError(f"{offsets.size} UWB offsets for {n} modules (need {n * n})")
+        anchors = self._xyz(msg.anchors)
+        if n != self.n_modules:
+            raise MessageError(
+                f"calibration for {n} UWB modules; the robot has {self.description.n_nodes} "
+                f"nodes and {len(anchors)} anchors"
+            )
+        if camera_info_raw is not None:
+            info = self.deserialize(camera_info_raw, m.CAMERA_INFO)
+            intrinsics = np.asarray(info.k, dtype=np.float64).reshape(3, 3).copy()
+        else:  # a robot without a camera: the description's nominal camera
+            intrinsics = self.description.sensors.camera.intrinsics
+        return SensorCalibration(
+            uwb_offsets=offsets.reshape(n, n).copy(),
+            anchors=anchors,
+            camera_intrinsics=intrinsics,
+            camera_pose=np.asarray(msg.camera_pose, dtype=np.float64).reshape(4, 4).copy(),
+        )
+
+    def make_imu(
+        self,
+        ns: int,
+        rod: int,
+        gyro: NDArray[np.float64],
+        accel: NDArray[np.float64],
+        mag: NDArray[np.float64] | None,
+    ) -> ImuSample:
+        """An ImuSample; ``mag`` None (no magnetometer message) reads as NaN."""
+        field = mag if mag is not None else np.full(3, np.nan)
+        return ImuSample(ns_to_seconds(ns), rod, accel, gyro, field)
+
+    def make_ahrs(self, ns: int, rod: int, quaternion: NDArray[np.float64]) -> AhrsSample:
+        return AhrsSample(ns_to_seconds(ns), rod, quaternion)
+
+    def make_encoder(self, ns: int, values: NDArray[np.float64]) -> EncoderSample:
+        return EncoderSample(ns_to_seconds(ns), values)
+
+    def make_cable_lengths(self, ns: int, values: NDArray[np.float64]) -> CableLengthSample:
+        return CableLengthSample(ns_to_seconds(ns), values)
+
+    def make_frame(self, ns: int, rgb: NDArray[np.uint8], depth: NDArray[np.float32]) -> RgbdFrame:
+        if rgb.shape[:2] != depth.shape:
+            raise MessageError(f"colour {rgb.shape[:2]} and depth {depth.shape} sizes differ")
+        return RgbdFrame(ns_to_seconds(ns), rgb, depth)
+
+
+def run_info_from_text(text: str) -> dict[str, Any]:
+    """The run info mapping of ``/tensegrity/run_info``; a clear error if it is not one."""
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise MessageError(f"run info is not YAML: {err}") from None
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise MessageError(f"run info is a {type(doc).__name__}, expected a mapping")
+    return doc

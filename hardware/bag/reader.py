@@ -1,0 +1,597 @@
+"""Reading a bag back as control periods of samples, with clear errors and counted skips.
+
+What is read, in log-time order, is cut into control periods at the command messages:
+the start period holds everything up to the first command, and period k everything
+logged after command k up to and including the time of command k+1. Within a period,
+samples are put in a canonical order (time, then sensor, then rod), which is the
+simulator's own order, so a recorded run reads back bit for bit.
+
+Documented skips (counted in :attr:`BagReader.skipped`, logged once per kind and
+topic; ``strict=True`` raises instead):
+
+- ``unknown_topic``: a topic outside the topic table (``/tf``, ``/rosout``, ...);
+- ``duplicate``: a message whose header stamp equals the previous one on its topic;
+- ``out_of_order``: a header stamp earlier than the previous one on its topic;
+- ``undecodable``: bytes that do not decode, or values that do not fit the robot
+  (a wrong count, an unknown name, NaN or inf);
+- ``unpaired``: a depth image without its colour image (or the reverse), ground truth
+  poses without the state;
+- ``trailing_command``: a last command with nothing recorded after it.
+
+Errors (:class:`BagError`): no bag at the path, a bag too damaged to open, a known
+topic with an unexpected type, a bag without a robot description (unless one is
+given), and, with ``strict``, any skip. A bag whose recording was cut off (no
+``metadata.yaml``, no MCAP summary) opens with everything up to its last complete
+chunk, and :attr:`BagReader.recovered` says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import statistics
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, BinaryIO
+
+import numpy as np
+from rosbags.rosbag2 import Reader, ReaderError
+from rosbags.rosbag2.storage_mcap import McapReader
+
+from hardware.bag import messages as m
+from hardware.bag.codec import MessageError, RobotCodec, run_info_from_text
+from hardware.recording import RecordedRun, RecordedStep, hold_command
+from tensegrity_gym.model.description import DescriptionError, RobotDescription, loads_robot
+from tensegrity_gym.model.samples import (
+    AhrsSample,
+    CableLengthSample,
+    ContactSample,
+    EncoderSample,
+    ImuSample,
+    RgbdFrame,
+    UwbRangeSample,
+    ns_to_seconds,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+    from numpy.typing import NDArray
+    from rosbags.interfaces import Connection
+
+    from tensegrity_gym.model.estimate import Estimate
+    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.samples import GroundTruth, Sample
+
+__all__ = ["BagError", "BagPeriod", "BagReader", "find_bags", "read_run"]
+
+log = logging.getLogger(__name__)
+
+_MAGIC = b"\x89MCAP0\r\n"
+_RECORD_HEAD = 9  # opcode (1) + length (8)
+_DATA_END, _FOOTER = 0x0F, 0x02
+
+# Canonical order of samples that share a time stamp: the simulator's sensor order.
+_KIND_ORDER = {
+    ImuSample: 0,
+    AhrsSample: 1,
+    EncoderSample: 2,
+    CableLengthSample: 3,
+    ContactSample: 4,
+    UwbRangeSample: 5,
+    RgbdFrame: 6,
+}
+COMMAND_TOPIC = "/commands/rest_length_targets"
+_HEADER_TOPICS = (
+    "/robot_description",
+    "/tensegrity/run_info",
+    "/tensegrity/calibration",
+    "/camera/camera_info",
+)
+
+
+class BagError(ValueError):
+    """A bag cannot be read as asked; the message names the bag, and the topic and time
+    where one is at fault."""
+
+
+def find_bags(path: str | Path) -> list[Path]:
+    """The bags at ``path``: the bag itself, or the bags in a folder of episodes."""
+    p = Path(path)
+    if not p.exists():
+        raise BagError(f"{p}: no such file or folder")
+    if p.is_file() or (p / "metadata.yaml").exists() or any(p.glob("*.mcap")):
+        return [p]
+    bags = sorted(
+        q
+        for q in p.iterdir()
+        if q.is_dir() and ((q / "metadata.yaml").exists() or any(q.glob("*.mcap")))
+    )
+    if not bags:
+        raise BagError(f"{p}: neither a bag (metadata.yaml or .mcap) nor a folder of bags")
+    return bags
+
+
+# ---------------------------------------------------------------------- recovery
+
+
+def _mcap_data_end(path: Path) -> int:
+    """Byte offset just past the last complete top-level MCAP record (0 if none)."""
+    size = path.stat().st_size
+    with path.open("rb") as f:
+        if f.read(8) != _MAGIC:
+            return 0
+        offset = 8
+        while offset + _RECORD_HEAD <= size:
+            f.seek(offset)
+            head = f.read(_RECORD_HEAD)
+            op, length = head[0], int.from_bytes(head[1:], "little")
+            if op in (_DATA_END, _FOOTER) or offset + _RECORD_HEAD + length > size:
+                break
+            offset += _RECORD_HEAD + length
+        return offset
+
+
+class _PrefixWithFooter:
+    """A read-only file: the first ``end`` bytes of ``path`` and an MCAP footer with no
+    summary, which makes rosbags scan the records instead of reading an index."""
+
+    def __init__(self, path: Path, end: int) -> None:
+        self._file: BinaryIO = path.open("rb")
+        self._end = end
+        self._tail = bytes([_FOOTER]) + (20).to_bytes(8, "little") + bytes(20) + _MAGIC
+        self._pos = 0
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._pos, os.SEEK_END: self._end + len(self._tail)}
+        self._pos = max(0, base[whence] + offset)
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def read(self, n: int = -1) -> bytes:
+        total = self._end + len(self._tail)
+        stop = total if n < 0 else min(total, self._pos + n)
+        out = b""
+        if self._pos < self._end:
+            self._file.seek(self._pos)
+            out = self._file.read(min(stop, self._end) - self._pos)
+        if stop > self._end:
+            out += self._tail[max(0, self._pos - self._end) : stop - self._end]
+        self._pos = stop
+        return out
+
+    def close(self) -> None:
+        self._file.close()
+
+
+class _RecoveredMcap(McapReader):
+    """rosbags' MCAP reader over the intact part of an MCAP file cut off mid-write."""
+
+    def __init__(self, path: Path, end: int) -> None:
+        super().__init__(path)
+        self._file_path = path
+        self._valid_end = end
+
+    def open(self) -> None:
+        self.bio = _PrefixWithFooter(self._file_path, self._valid_end)  # type: ignore[assignment]
+        try:
+            self._open()
+        except BaseException:
+            self.close()
+            raise
+
+
+def _open_storage(path: Path) -> tuple[Any, bool]:
+    """(an open rosbags reader, whether the bag was recovered from a cut-off write)."""
+    mcaps = [path] if path.is_file() else sorted(path.glob("*.mcap"))
+    if (path.is_dir() and (path / "metadata.yaml").exists()) or path.is_file():
+        reader: Any = Reader(path)
+        try:
+            reader.open()
+            return reader, False
+        except (ReaderError, OSError, ValueError, KeyError) as err:
+            if len(mcaps) != 1 or not mcaps[0].name.endswith(".mcap"):
+                raise BagError(f"{path}: cannot open the bag: {err}") from None
+            log.warning("%s: %s; reading what was written before the damage", path, err)
+    if len(mcaps) != 1:
+        raise BagError(
+            f"{path}: no metadata.yaml and {len(mcaps)} .mcap files; cannot tell which to read"
+        )
+    end = _mcap_data_end(mcaps[0])
+    if end <= 8:
+        raise BagError(f"{mcaps[0]}: not an MCAP file, or cut off before its first record")
+    storage = _RecoveredMcap(mcaps[0], end)
+    try:
+        storage.open()
+    except (ReaderError, OSError, ValueError) as err:
+        raise BagError(f"{mcaps[0]}: cannot recover the bag: {err}") from None
+    return storage, True
+
+
+# ---------------------------------------------------------------------- periods
+
+
+@dataclass
+class BagPeriod:
+    """One control period of a bag: the start period has no command."""
+
+    samples: list[Sample]
+    command: NDArray[np.float64] | None
+    """The rest-length targets (m), (m,), that drove this period."""
+    truth: GroundTruth | None
+    """The last ground truth of the period, where the bag has one."""
+    estimate: Estimate | None
+    """The last estimate recorded in the period."""
+    t_end: float
+    """Log time (s) of the period's end: the next command, or the last message."""
+
+
+@dataclass
+class _Builder:
+    command: NDArray[np.float64] | None
+    samples: list[Sample] = field(default_factory=list)
+    imu: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
+        default_factory=dict
+    )
+    mag: dict[tuple[int, int], NDArray[np.float64]] = field(default_factory=dict)
+    color: dict[int, NDArray[np.uint8]] = field(default_factory=dict)
+    depth: dict[int, NDArray[np.float32]] = field(default_factory=dict)
+    truth_poses: dict[int, bytes] = field(default_factory=dict)
+    truth_state: dict[int, bytes] = field(default_factory=dict)
+    estimate: Estimate | None = None
+
+
+class BagReader:
+    """A bag opened for reading: its robot, calibration and run info, then its periods.
+
+    Args:
+        path: a bag folder (``metadata.yaml`` and ``.mcap``), a bare ``.mcap`` file, or
+            the folder of a recording that was cut off.
+        description: the robot, for a bag that does not carry ``/robot_description``.
+        strict: raise :class:`BagError` instead of skipping a bad message.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        description: RobotDescription | None = None,
+        strict: bool = False,
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise BagError(f"{self.path}: no such bag")
+        self.strict = strict
+        self.skipped: Counter[str] = Counter()
+        self.unknown_topics: Counter[str] = Counter()
+        self._warned: set[tuple[str, str]] = set()
+        self._storage, self.recovered = _open_storage(self.path)
+        try:
+            self._connections: list[Connection] = list(self._storage.connections)
+            header = self._read_header()
+            self.description = self._description(header, description)
+            self.codec = RobotCodec(self.description)
+            self._check_types()
+            self.run_info = self._run_info(header)
+            self.calibration = self._calibration(header)
+            self.control_period = self._control_period()
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ opening
+
+    def close(self) -> None:
+        storage, self._storage = self._storage, None
+        if storage is not None:
+            try:
+                storage.close()
+            except (ReaderError, OSError, AssertionError):  # already closed
+                pass
+
+    def __enter__(self) -> BagReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
+        conns = [c for c in self._connections if topics is None or c.topic in topics]
+        if not conns:
+            return
+        try:
+            for conn, ns, raw in self._storage.messages(conns):
+                yield conn.topic, ns, raw
+        except (ReaderError, OSError, ValueError, EOFError) as err:
+            raise BagError(f"{self.path}: the bag is damaged: {err}") from None
+
+    def _read_header(self) -> dict[str, bytes]:
+        found: dict[str, bytes] = {}
+        wanted = set(_HEADER_TOPICS)
+        it = self._messages(wanted)
+        for topic, _, raw in it:
+            found.setdefault(topic, raw)
+            if len(found) == len(wanted):
+                break
+        if hasattr(it, "close"):
+            it.close()
+        return found
+
+    def _description(
+        self, header: dict[str, bytes], given: RobotDescription | None
+    ) -> RobotDescription:
+        if given is not None:
+            return given
+        raw = header.get("/robot_description")
+        if raw is None:
+            raise BagError(
+                f"{self.path}: no /robot_description message; pass the robot "
+                "(description=..., or --robot on the command line)"
+            )
+        store = m.typestore()
+        try:
+            message: Any = store.deserialize_cdr(raw, m.STRING)
+            text = str(message.data)
+            return loads_robot(text, f"{self.path}:/robot_description")
+        except DescriptionError as err:
+            raise BagError(str(err)) from None
+        except Exception as err:
+            raise BagError(f"{self.path}: /robot_description cannot be decoded: {err}") from None
+
+    def _check_types(self) -> None:
+        types = self.codec.topics.types
+        for conn in self._connections:
+            want = types.get(conn.topic)
+            if want is not None and conn.msgtype != want:
+                raise BagError(
+                    f"{self.path}: topic {conn.topic} has type {conn.msgtype}; this robot's "
+                    f"topic table gives {want}"
+                )
+            if want is not None and conn.msgtype.startswith("tensegrity_msgs/") and conn.digest:
+                ours = self.codec.store.hash_rihs01(conn.msgtype)
+                if conn.digest != ours:
+                    raise BagError(
+                        f"{self.path}: topic {conn.topic}: the bag's {conn.msgtype} is not "
+                        "the definition this version reads (its hash differs)"
+                    )
+
+    def _run_info(self, header: dict[str, bytes]) -> dict[str, Any]:
+        raw = header.get("/tensegrity/run_info")
+        if raw is None:
+            return {}
+        try:
+            return run_info_from_text(self.codec.deserialize(raw, m.STRING).data)
+        except MessageError as err:
+            raise BagError(f"{self.path}: /tensegrity/run_info: {err}") from None
+
+    def _calibration(self, header: dict[str, bytes]) -> SensorCalibration:
+        raw = header.get("/tensegrity/calibration")
+        if raw is None:
+            raise BagError(
+                f"{self.path}: no /tensegrity/calibration message (UWB anchors and offsets, "
+                "camera pose); an estimator cannot run without it"
+            )
+        try:
+            return self.codec.decode_calibration(raw, header.get("/camera/camera_info"))
+        except MessageError as err:
+            raise BagError(f"{self.path}: /tensegrity/calibration: {err}") from None
+
+    def _control_period(self) -> float:
+        value = self.run_info.get("control_period")
+        if value is not None:
+            if not isinstance(value, (int, float)) or not value > 0:
+                raise BagError(f"{self.path}: run info control_period={value!r} is not positive")
+            return float(value)
+        times = []
+        for _, ns, _ in self._messages({COMMAND_TOPIC}):
+            times.append(ns)
+            if len(times) > 100:
+                break
+        gaps = np.diff(times)
+        if not gaps.size or not gaps.max() > 0:
+            raise BagError(
+                f"{self.path}: no control_period in /tensegrity/run_info and too few "
+                f"{COMMAND_TOPIC} messages to infer it"
+            )
+        return ns_to_seconds(int(statistics.median(gaps[gaps > 0])))
+
+    # ------------------------------------------------------------------ facts
+
+    @property
+    def topics(self) -> dict[str, str]:
+        """Topic -> message type of every connection in the bag."""
+        return {c.topic: c.msgtype for c in self._connections}
+
+    @property
+    def has_truth(self) -> bool:
+        return "/ground_truth/state" in self.topics
+
+    @property
+    def command_count(self) -> int | None:
+        """How many commands (control periods after the start), where the bag says."""
+        counts = [c.msgcount for c in self._connections if c.topic == COMMAND_TOPIC]
+        return sum(counts) if counts and all(counts) else None
+
+    # ------------------------------------------------------------------ skips
+
+    def _skip(self, kind: str, topic: str, ns: int, why: str = "") -> None:
+        text = f"{self.path}: {topic} at t={ns_to_seconds(ns):.9f} s: {kind.replace('_', ' ')}"
+        if why:
+            text += f": {why}"
+        if self.strict:
+            raise BagError(text)
+        self.skipped[kind] += 1
+        if (kind, topic) not in self._warned:
+            self._warned.add((kind, topic))
+            log.warning("%s (skipped; further ones on this topic are only counted)", text)
+
+    # ------------------------------------------------------------------ periods
+
+    def periods(self) -> Iterator[BagPeriod]:
+        """The start period, then one per command, in time order."""
+        topics = self.codec.topics
+        known = set(topics.types) - set(_HEADER_TOPICS)
+        for conn in self._connections:
+            if conn.topic not in topics.types:
+                self.unknown_topics[conn.topic] += conn.msgcount
+        if self.unknown_topics:
+            self.skipped["unknown_topic"] += sum(self.unknown_topics.values())
+            log.info(
+                "%s: skipping topics outside the topic table: %s",
+                self.path,
+                sorted(self.unknown_topics),
+            )
+        last_stamp: dict[str, int] = {}
+        current = _Builder(command=None)
+        boundary: int | None = None  # log time of the next period's command
+        pending: NDArray[np.float64] | None = None
+        last_ns = 0
+        for topic, ns, raw in self._messages(known):
+            if boundary is not None and ns > boundary:
+                assert pending is not None
+                yield self._finish(current, boundary)
+                current, boundary, pending = _Builder(command=pending), None, None
+            last_ns = ns
+            if topic == COMMAND_TOPIC:
+                try:
+                    stamp, targets = self.codec.decode_joint_state(raw, "actuated")
+                except MessageError as err:
+                    self._skip("undecodable", topic, ns, str(err))
+                    continue
+                if not self._in_order(last_stamp, topic, stamp):
+                    continue
+                if boundary is not None:  # two commands at one log time
+                    self._skip("duplicate", topic, ns, "a second command at the same time")
+                    continue
+                boundary, pending = ns, targets
+                continue
+            self._add(current, topic, ns, raw, last_stamp)
+        if pending is not None:
+            self._skip(
+                "trailing_command",
+                COMMAND_TOPIC,
+                boundary or last_ns,
+                "nothing was recorded after it",
+            )
+        yield self._finish(current, last_ns)
+
+    def _in_order(self, last_stamp: dict[str, int], topic: str, stamp: int) -> bool:
+        previous = last_stamp.get(topic)
+        if previous is not None and stamp <= previous:
+            kind = "duplicate" if stamp == previous else "out_of_order"
+            why = f"stamp {ns_to_seconds(stamp):.9f} s after {ns_to_seconds(previous):.9f} s"
+            self._skip(kind, topic, stamp, why)
+            return False
+        last_stamp[topic] = stamp
+        return True
+
+    def _add(
+        self, b: _Builder, topic: str, ns: int, raw: bytes, last_stamp: dict[str, int]
+    ) -> None:
+        codec, topics = self.codec, self.codec.topics
+        try:
+            if topic in topics.imu_raw:
+                stamp, gyro, accel = codec.decode_imu_raw(raw)
+                if self._in_order(last_stamp, topic, stamp):
+                    b.imu[(stamp, topics.imu_raw[topic])] = (gyro, accel)
+            elif topic in topics.imu_mag:
+                stamp, mag = codec.decode_mag(raw)
+                if self._in_order(last_stamp, topic, stamp):
+                    b.mag[(stamp, topics.imu_mag[topic])] = mag
+            elif topic in topics.ahrs:
+                stamp, quat = codec.decode_ahrs(raw)
+                if self._in_order(last_stamp, topic, stamp):
+                    b.samples.append(codec.make_ahrs(stamp, topics.ahrs[topic], quat))
+            elif topic == "/motors/rest_lengths":
+                stamp, values = codec.decode_joint_state(raw, "actuated")
+                if self._in_order(last_stamp, topic, stamp):
+                    b.samples.append(codec.make_encoder(stamp, values))
+            elif topic == "/cables/lengths":
+                stamp, values = codec.decode_joint_state(raw, "all")
+                if self._in_order(last_stamp, topic, stamp):
+                    b.samples.append(codec.make_cable_lengths(stamp, values))
+            elif topic == "/uwb/ranges":
+                uwb = codec.decode_uwb(raw)
+                if self._in_order(last_stamp, topic, round(uwb.t * 1e9)):
+                    b.samples.append(uwb)
+            elif topic == "/contacts":
+                contact = codec.decode_contacts(raw)
+                if self._in_order(last_stamp, topic, round(contact.t * 1e9)):
+                    b.samples.append(contact)
+            elif topic == "/camera/color/image_raw":
+                stamp, image = codec.decode_image(raw, "color")
+                if self._in_order(last_stamp, topic, stamp):
+                    b.color[stamp] = image
+            elif topic == "/camera/depth/image_raw":
+                stamp, image = codec.decode_image(raw, "depth")
+                if self._in_order(last_stamp, topic, stamp):
+                    b.depth[stamp] = image
+            elif topic == "/ground_truth/state":
+                b.truth_state[self._stamp_of(raw)] = raw
+            elif topic == "/ground_truth/rod_poses":
+                b.truth_poses[self._stamp_of(raw)] = raw
+            elif topic == "/estimate/state":
+                b.estimate = codec.decode_estimate(raw)
+            # /estimate/rod_poses is for viewers; the state holds everything.
+        except MessageError as err:
+            self._skip("undecodable", topic, ns, str(err))
+
+    @staticmethod
+    def _stamp_of(raw: bytes) -> int:
+        """The header stamp (ns) of any message that starts with a std_msgs/Header."""
+        if len(raw) < 12:
+            raise MessageError(f"{len(raw)} bytes cannot hold a header")
+        return m.stamp_ns(
+            int.from_bytes(raw[4:8], "little", signed=True), int.from_bytes(raw[8:12], "little")
+        )
+
+    def _finish(self, b: _Builder, end_ns: int) -> BagPeriod:
+        codec = self.codec
+        samples = b.samples
+        for (stamp, rod), (gyro, accel) in b.imu.items():
+            samples.append(codec.make_imu(stamp, rod, gyro, accel, b.mag.pop((stamp, rod), None)))
+        for stamp in list(b.color):
+            if stamp in b.depth:
+                try:
+                    samples.append(codec.make_frame(stamp, b.color.pop(stamp), b.depth.pop(stamp)))
+                except MessageError as err:
+                    self._skip("undecodable", "/camera/depth/image_raw", stamp, str(err))
+        for stamp in b.color:
+            self._skip("unpaired", "/camera/color/image_raw", stamp, "no depth image")
+        for stamp in b.depth:
+            self._skip("unpaired", "/camera/depth/image_raw", stamp, "no colour image")
+        samples.sort(key=lambda s: (s.t, _KIND_ORDER[type(s)], getattr(s, "rod", 0)))
+        truth = None
+        for stamp in sorted(b.truth_state):
+            if stamp not in b.truth_poses:
+                self._skip("unpaired", "/ground_truth/state", stamp, "no rod poses")
+                continue
+            try:
+                truth = codec.decode_truth(b.truth_state[stamp], b.truth_poses[stamp])
+            except MessageError as err:
+                self._skip("undecodable", "/ground_truth/state", stamp, str(err))
+        return BagPeriod(samples, b.command, truth, b.estimate, ns_to_seconds(end_ns))
+
+
+def read_run(
+    path: str | Path, *, description: RobotDescription | None = None, strict: bool = False
+) -> RecordedRun:
+    """A whole bag in memory, as the :class:`RecordedRun` an estimator study replays."""
+    with BagReader(path, description=description, strict=strict) as reader:
+        d = reader.description
+        periods = reader.periods()
+        start = next(periods)
+        run = RecordedRun(
+            d,
+            reader.calibration,
+            RecordedStep(start.samples, hold_command(d), start.truth),
+            [],
+            reader.control_period,
+        )
+        for p in periods:
+            assert p.command is not None  # only the start period has none
+            run.steps.append(RecordedStep(p.samples, p.command, p.truth))
+    return run

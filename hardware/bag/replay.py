@@ -1,0 +1,160 @@
+"""A recorded bag behind the :class:`Backend` protocol: a run plays back as if it were live.
+
+The env and the estimator see the same samples, at the same times, as when the run was
+recorded. The commands are the bag's: the targets the env passes to :meth:`step` are
+ignored (a warning says so once), and each :class:`StepResult` carries the recorded
+command, which the env hands to the estimator. The last period has ``ended`` set, which
+ends the episode (truncated).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from hardware.bag.reader import BagReader
+from tensegrity_gym.model.protocols import StepResult
+from tensegrity_gym.model.samples import RgbdFrame
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+    from pathlib import Path
+
+    from numpy.typing import NDArray
+
+    from hardware.bag.reader import BagPeriod
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.samples import GroundTruth
+
+__all__ = ["ReplayBackend"]
+
+log = logging.getLogger(__name__)
+
+
+class ReplayBackend:
+    """Plays a bag back one control period per :meth:`step`.
+
+    Args:
+        path: the bag (see :class:`BagReader`).
+        description: the robot, for a bag without ``/robot_description``.
+        strict: raise on any bad message instead of skipping and counting it.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        description: RobotDescription | None = None,
+        strict: bool = False,
+    ) -> None:
+        self.reader = BagReader(path, description=description, strict=strict)
+        self.description = self.reader.description
+        self.control_period = self.reader.control_period
+        self._periods: Iterator[BagPeriod] | None = None
+        self._next: BagPeriod | None = None
+        self._truth: GroundTruth | None = None
+        self._frame: RgbdFrame | None = None
+        self._warned = False
+        self.steps_taken = 0
+
+    @property
+    def calibration(self) -> SensorCalibration:
+        return self.reader.calibration
+
+    @property
+    def next_command(self) -> NDArray[np.float64] | None:
+        """The recorded command :meth:`step` will play next (None at the bag's end)."""
+        return None if self._next is None else self._next.command
+
+    @property
+    def steps_total(self) -> int | None:
+        """Control periods after the start, where the bag's index says."""
+        return self.reader.command_count
+
+    def _advance(self) -> BagPeriod | None:
+        assert self._periods is not None
+        return next(self._periods, None)
+
+    def _saw(self, period: BagPeriod) -> None:
+        self._truth = period.truth  # None for a period without ground truth: none is known
+        for s in period.samples:
+            if isinstance(s, RgbdFrame):
+                self._frame = s
+
+    def reset(self, rng: np.random.Generator) -> StepResult:
+        """Start again from the beginning of the bag (``rng`` is not used)."""
+        self._periods = self.reader.periods()
+        self._truth = self._frame = None
+        self.steps_taken = 0
+        start = self._advance()
+        assert start is not None  # periods() always yields the start period
+        self._saw(start)
+        self._next = self._advance()
+        return StepResult(start.samples, info=self._info(start), ended=self._next is None)
+
+    def _info(self, period: BagPeriod) -> dict[str, Any]:
+        return {
+            "bag_time": period.t_end,
+            "bag_skipped": dict(self.reader.skipped),
+            "bag_recorded_estimate": period.estimate,
+        }
+
+    def step(self, targets: NDArray[np.float64]) -> StepResult:
+        if self._periods is None:
+            raise RuntimeError("call reset() before step()")
+        period = self._next
+        if period is None:
+            raise RuntimeError(
+                f"{self.reader.path}: the bag ended after {self.steps_taken} steps; call reset()"
+            )
+        command = period.command
+        assert command is not None  # only the start period has none
+        asked = np.asarray(targets, dtype=np.float64)
+        if not self._warned and (asked.shape != command.shape or not np.allclose(asked, command)):
+            log.warning(
+                "%s: replaying the bag's recorded commands; the actions passed to step() "
+                "are ignored",
+                self.reader.path,
+            )
+            self._warned = True
+        self._saw(period)
+        self._next = self._advance()
+        self.steps_taken += 1
+        return StepResult(
+            period.samples,
+            info=self._info(period),
+            command=command,
+            ended=self._next is None,
+        )
+
+    def ground_truth(self) -> GroundTruth | None:
+        return self._truth
+
+    def render(self, width: int, height: int) -> NDArray[np.uint8]:
+        """The latest camera frame, or a top view of the true rods, (height, width, 3)."""
+        if self._frame is not None:
+            rgb = self._frame.rgb
+            rows = np.arange(height) * rgb.shape[0] // height
+            cols = np.arange(width) * rgb.shape[1] // width
+            return np.ascontiguousarray(rgb[rows][:, cols])
+        image = np.zeros((height, width, 3), dtype=np.uint8)
+        if self._truth is None:
+            return image
+        x = self._truth.node_positions[:, :2]
+        centre = x.mean(axis=0)
+        scale = 0.4 * min(width, height) / max(self.description.characteristic_length, 1e-6)
+        for k, (i, j) in enumerate(self.description.rod_nodes):
+            colour = np.array([(200, 60, 60), (60, 200, 60), (60, 60, 220)][k % 3], np.uint8)
+            for s in np.linspace(0.0, 1.0, 200):
+                p = (1 - s) * x[i] + s * x[j] - centre
+                u = int(width / 2 + scale * p[0])
+                v = int(height / 2 - scale * p[1])
+                if 0 <= u < width and 0 <= v < height:
+                    image[v, u] = colour
+        return image
+
+    def close(self) -> None:
+        self.reader.close()
