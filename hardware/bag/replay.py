@@ -96,11 +96,7 @@ class ReplayBackend:
         return StepResult(start.samples, info=self._info(start), ended=self._next is None)
 
     def _info(self, period: BagPeriod) -> dict[str, Any]:
-        return {
-            "bag_time": period.t_end,
-            "bag_skipped": dict(self.reader.skipped),
-            "bag_recorded_estimate": period.estimate,
-        }
+        return {"bag_time": period.t_end, "bag_skipped": dict(self.reader.skipped)}
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
         if self._periods is None:
