@@ -103,10 +103,14 @@ def bench_memory(env_id: str, steps: int, seed: int = 0) -> dict[str, Any]:
 
 
 def run_benchmarks(
-    speed_steps: int = 2000, memory_steps: int = 100_000, estimation: bool = False
+    speed_steps: int = 2000,
+    memory_steps: int = 100_000,
+    estimation: bool = False,
+    bag_minutes: float = 10.0,
 ) -> dict[str, Any]:
-    """Env speed (oracle and UKF) and memory; with ``estimation``, also the estimation
-    study and the UKF's speed against filterpy's (:mod:`agents.bench_estimation`)."""
+    """Env speed (oracle and UKF), memory, and the bag layer (:mod:`agents.bench_bags`);
+    with ``estimation``, also the estimation study and the UKF's speed against
+    filterpy's (:mod:`agents.bench_estimation`)."""
     results: dict[str, Any] = {
         "machine": {
             "platform": platform.platform(),
@@ -143,6 +147,10 @@ def run_benchmarks(
             "speedup_vs_filterpy_numpy_model": 50,
         }
         results["estimation"] = bench_estimation()
+    if bag_minutes > 0:
+        from agents.bench_bags import bench_bags
+
+        results["bags"] = bench_bags(minutes=bag_minutes)
     if memory_steps > 0:
         results["memory"] = bench_memory("tensegrity_gym/ThreeBarRoll-v0", memory_steps)
     return results

@@ -38,7 +38,10 @@ def _bench(args: argparse.Namespace) -> int:
     from agents.bench import run_benchmarks
 
     results = run_benchmarks(
-        speed_steps=args.steps, memory_steps=args.memory_steps, estimation=args.estimation
+        speed_steps=args.steps,
+        memory_steps=args.memory_steps,
+        estimation=args.estimation,
+        bag_minutes=args.bag_minutes,
     )
     text = json.dumps(results, indent=2)
     if args.out:
@@ -130,6 +133,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also run the estimation study (papers/000 on SUPERball) and the UKF's "
         "speed against filterpy's",
+    )
+    bench.add_argument(
+        "--bag-minutes",
+        type=float,
+        default=10.0,
+        help="minutes of 3-bar recording whose reading and replay are timed (0: skip)",
     )
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
@@ -22,7 +23,6 @@ from tensegrity_gym.model.samples import ns_to_seconds, seconds_to_ns
 from tensegrity_gym.sim.backend import SimBackend
 
 if TYPE_CHECKING:
-    from pathlib import Path
 
     from hardware.recording import RecordedRun, RecordedStep
     from tensegrity_gym.envs.roll_env import TensegrityEnv
@@ -380,3 +380,28 @@ def test_env_record_dir_numbers_episodes_and_keeps_old_ones(tmp_path: Path) -> N
     ]
     assert inner.backend.sink.paths[-1].name == "episode_002"  # type: ignore[attr-defined]
     assert len(read_run(tmp_path / "episode_001").steps) == 3
+
+
+def test_a_bag_written_with_rosbags_alone_runs_through_the_ukf(tmp_path: Path) -> None:
+    """The README's promise: a lab's own bag (examples/write_bag_with_rosbags.py) reads."""
+    import runpy
+
+    from agents.offline import estimate_bag
+    from tensegrity_gym.model.kinematics import center_of_mass
+
+    example = Path(__file__).parents[1] / "examples" / "write_bag_with_rosbags.py"
+    runpy.run_path(str(example), run_name="example")["main"](tmp_path / "lab_bag")
+    with BagReader(tmp_path / "lab_bag") as reader:
+        assert reader.command_count == 49 and not reader.has_truth
+        assert reader.control_period == pytest.approx(0.1)  # inferred from the commands
+        periods = list(reader.periods())
+        assert not reader.skipped
+    assert len(periods) == 50
+    kinds = {type(s).__name__ for p in periods for s in p.samples}
+    assert kinds == {"AhrsSample", "EncoderSample", "UwbRangeSample"}
+    [metrics] = estimate_bag(tmp_path / "lab_bag", "ukf", tmp_path / "out", progress=False)
+    assert metrics["finite"] and metrics["steps"] == 49 and "com_rmse_m" not in metrics
+    d = load_robot("three_bar")
+    com = np.load(tmp_path / "out" / "estimates.npz")["com"]
+    nominal = center_of_mass(d.initial_positions, d.node_masses)
+    assert np.linalg.norm(com[-1, :2] - nominal[:2]) < 0.05

@@ -17,6 +17,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 from functools import cache
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -41,47 +42,11 @@ __all__ = [
     "typestore",
 ]
 
-# The definitions, as a ROS 2 package ``tensegrity_msgs`` would hold them in msg/.
+# The definitions live as a ROS 2 package beside this module (tensegrity_msgs/msg/*.msg,
+# with package.xml and CMakeLists.txt), so a robot's own ROS 2 workspace can build them.
+_MSG_DIR = Path(__file__).parent / "tensegrity_msgs" / "msg"
 CUSTOM_MESSAGES: dict[str, str] = {
-    "tensegrity_msgs/msg/UwbRange": """\
-# One two-way ranging exchange between UWB modules (papers/000, section III).
-# Module ids: 0..n_nodes-1 are the robot's endcap modules (description node order),
-# n_nodes.. are the fixed anchors (description anchor order).
-builtin_interfaces/Time stamp  # when the exchange's final message arrived
-uint16 initiator
-uint16 responder
-float64 range  # uncorrected distance m_ji of eq. 6-7 (m): pair offset and noise included
-""",
-    "tensegrity_msgs/msg/UwbRangeArray": """\
-# One broadcast round of UWB ranging; rejected packets are absent.
-std_msgs/Header header  # stamp: the end of the round
-tensegrity_msgs/UwbRange[] ranges
-""",
-    "tensegrity_msgs/msg/ContactFlags": """\
-# Endcap-ground contact switches.
-std_msgs/Header header
-string[] nodes  # node names of the robot description
-bool[] in_contact
-""",
-    "tensegrity_msgs/msg/TensegrityState": """\
-# The state of the whole robot: ground truth (motion capture, simulation) or an estimate.
-std_msgs/Header header  # frame_id: the world frame, z up
-geometry_msgs/Point[] node_positions  # (m), description node order
-geometry_msgs/Vector3[] node_velocities  # (m/s)
-geometry_msgs/Point center_of_mass  # (m)
-float64[] rest_lengths  # (m): every cable for ground truth, the actuated ones for an estimate
-bool healthy  # the estimator's health flag; true for ground truth
-bool reinitialised  # the estimator re-initialised itself at this update
-""",
-    "tensegrity_msgs/msg/SensorCalibration": """\
-# What a lab measures once per robot and setup; with the robot description, enough to
-# run every estimator of tensegrity-gym on a bag.
-std_msgs/Header header
-geometry_msgs/Point[] anchors  # UWB anchor positions (m), world frame
-uint16 n_modules  # UWB modules: the endcap modules, then the anchors
-float64[] uwb_offsets  # o_ji of papers/000 eq. 6-7 (m), n_modules x n_modules, row-major
-float64[16] camera_pose  # camera-to-world transform, row-major 4x4; the camera looks along +z
-""",
+    f"tensegrity_msgs/msg/{f.stem}": f.read_text() for f in sorted(_MSG_DIR.glob("*.msg"))
 }
 
 STRING = "std_msgs/msg/String"

@@ -410,6 +410,11 @@ class BagReader:
         return "/ground_truth/state" in self.topics
 
     @property
+    def message_count(self) -> int:
+        """Messages in the bag, all topics (as its index or a scan counted them)."""
+        return sum(c.msgcount for c in self._connections)
+
+    @property
     def command_count(self) -> int | None:
         """How many commands (control periods after the start), where the bag says."""
         counts = [c.msgcount for c in self._connections if c.topic == COMMAND_TOPIC]

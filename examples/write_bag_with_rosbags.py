@@ -1,0 +1,149 @@
+"""Write a bag that tensegrity-gym reads, with nothing but `rosbags`: what a lab does to
+bring its own robot's logs here (or what a ROS 2 robot publishes, recorded by
+`ros2 bag record -s mcap`).
+
+Usage: python examples/write_bag_with_rosbags.py OUT_DIR [ROBOT_YAML]
+
+The robot here stands still at its nominal shape for 5 s, so every sensor reading is
+exact; a real robot's driver fills in its own readings. Then:
+    tensegrity-gym estimate OUT_DIR --estimator ukf --out estimate_out
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from hardware.bag.messages import CUSTOM_MESSAGES  # the same text as tensegrity_msgs/msg/*.msg
+from tensegrity_gym.model.description import dump_robot, load_robot
+
+CONTROL_PERIOD = 0.1  # s: one command per period
+
+
+def main(out: Path, robot: str = "three_bar") -> None:
+    d = load_robot(robot)  # a lab's own YAML in the same schema works the same way
+    store = get_typestore(Stores.ROS2_JAZZY)
+    for name, text in CUSTOM_MESSAGES.items():
+        store.register(get_types_from_msg(text, name))
+    T = store.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+    Point, Quaternion, Vector3 = (
+        T["geometry_msgs/msg/Point"],
+        T["geometry_msgs/msg/Quaternion"],
+        T["geometry_msgs/msg/Vector3"],
+    )
+
+    def header(ns: int, frame: str = "") -> object:
+        return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    nodes = d.initial_positions  # (n, 3) m: the robot's pose, which a real robot measures
+    anchors = d.anchors
+    modules = np.vstack([nodes, anchors])
+    n_modules = len(modules)
+    actuated = [d.cables[k].name for k in d.actuated]
+    hold = d.rest_lengths[d.actuated]
+    no_cov = np.zeros(9)
+
+    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as bag:
+        conns: dict[str, object] = {}
+
+        def write(topic: str, msgtype: str, msg: object, ns: int) -> None:
+            if topic not in conns:
+                conns[topic] = bag.add_connection(topic, msgtype, typestore=store)
+            bag.write(conns[topic], ns, store.serialize_cdr(msg, msgtype))
+
+        # Once, first: the robot and the calibration (no UWB offsets measured: zeros).
+        write(
+            "/robot_description",
+            "std_msgs/msg/String",
+            T["std_msgs/msg/String"](data=dump_robot(d)),
+            0,
+        )
+        write(
+            "/tensegrity/calibration",
+            "tensegrity_msgs/msg/SensorCalibration",
+            T["tensegrity_msgs/msg/SensorCalibration"](
+                header=header(0, "world"),
+                anchors=[Point(x=a[0], y=a[1], z=a[2]) for a in anchors],
+                n_modules=n_modules,
+                uwb_offsets=np.zeros(n_modules * n_modules),
+                camera_pose=np.eye(4).reshape(16),
+            ),
+            0,
+        )
+        for step in range(50):
+            t0 = round(step * CONTROL_PERIOD * 1e9)
+            if step > 0:  # the command that drives the period starting at t0
+                write(
+                    "/commands/rest_length_targets",
+                    "sensor_msgs/msg/JointState",
+                    T["sensor_msgs/msg/JointState"](
+                        header=header(t0),
+                        name=actuated,
+                        position=hold,
+                        velocity=np.empty(0),
+                        effort=np.empty(0),
+                    ),
+                    t0,
+                )
+            for k in range(1, 11):  # encoders and AHRS at 100 Hz within the period
+                ns = t0 + k * 10_000_000
+                write(
+                    "/motors/rest_lengths",
+                    "sensor_msgs/msg/JointState",
+                    T["sensor_msgs/msg/JointState"](
+                        header=header(ns),
+                        name=actuated,
+                        position=hold,
+                        velocity=np.empty(0),
+                        effort=np.empty(0),
+                    ),
+                    ns,
+                )
+                for r, rod in enumerate(d.rods):
+                    i, j = d.rod_nodes[r]
+                    axis = (nodes[j] - nodes[i]) / np.linalg.norm(nodes[j] - nodes[i])
+                    # the rotation taking the body z axis onto the rod's axis
+                    xyz = np.cross([0.0, 0.0, 1.0], axis)
+                    q = np.array([*xyz, 1.0 + axis[2]])
+                    q /= np.linalg.norm(q)
+                    write(
+                        f"/{rod.name}/imu/data",
+                        "sensor_msgs/msg/Imu",
+                        T["sensor_msgs/msg/Imu"](
+                            header=header(ns, rod.name),
+                            orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+                            orientation_covariance=no_cov,
+                            angular_velocity=Vector3(x=0.0, y=0.0, z=0.0),
+                            angular_velocity_covariance=np.r_[-1.0, np.zeros(8)],
+                            linear_acceleration=Vector3(x=0.0, y=0.0, z=0.0),
+                            linear_acceleration_covariance=np.r_[-1.0, np.zeros(8)],
+                        ),
+                        ns,
+                    )
+            # one UWB round per period: every endcap to every anchor
+            ns = t0 + 100_000_000
+            ranges = [
+                T["tensegrity_msgs/msg/UwbRange"](
+                    stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9),
+                    initiator=i,
+                    responder=len(nodes) + a,
+                    range=float(np.linalg.norm(anchors[a] - nodes[i])),
+                )
+                for i in range(len(nodes))
+                for a in range(len(anchors))
+            ]
+            write(
+                "/uwb/ranges",
+                "tensegrity_msgs/msg/UwbRangeArray",
+                T["tensegrity_msgs/msg/UwbRangeArray"](header=header(ns), ranges=ranges),
+                ns,
+            )
+
+
+if __name__ == "__main__":
+    main(Path(sys.argv[1]), *sys.argv[2:3])
