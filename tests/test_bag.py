@@ -23,7 +23,6 @@ from tensegrity_gym.model.samples import ns_to_seconds, seconds_to_ns
 from tensegrity_gym.sim.backend import SimBackend
 
 if TYPE_CHECKING:
-
     from hardware.recording import RecordedRun, RecordedStep
     from tensegrity_gym.envs.roll_env import TensegrityEnv
 
