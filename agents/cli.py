@@ -15,6 +15,77 @@ log = logging.getLogger("tensegrity_gym")
 
 
 def _demo(args: argparse.Namespace) -> int:
+    from agents.main_job import run_main_job
+
+    report = run_main_job(
+        Path(args.out),
+        ukf_timesteps=args.timesteps,
+        oracle_timesteps=args.oracle_timesteps,
+        episodes=args.episodes,
+        seed=args.seed,
+        progress_bar=not args.no_progress,
+    )
+    sys.stdout.write(f"report: {Path(args.out) / 'report' / 'report.md'}\n")
+    for name, check in report["checks"].items():
+        sys.stdout.write(
+            f"  {name}: {check['progress_vs_random']}x a random policy's progress, "
+            f"{check['rolls_per_episode']} rolls per episode (under {check['condition']})\n"
+        )
+    sys.stdout.write(f"  wall time per stage (s): {report['timing_s']}\n")
+    return 0
+
+
+def _train(args: argparse.Namespace) -> int:
+    from agents.train import train
+
+    try:
+        path = train(
+            args.env,
+            args.algo,
+            args.estimator,
+            Path(args.out),
+            timesteps=args.timesteps,
+            seed=args.seed,
+            n_envs=args.n_envs,
+            config_file=Path(args.config) if args.config else None,
+            progress_bar=not args.no_progress,
+        )
+    except KeyboardInterrupt:
+        log.warning("interrupted: the model reached so far is in %s", args.out)
+        return 130
+    except ValueError as err:
+        log.error("%s", err)
+        return 2
+    sys.stdout.write(f"{path}\n")
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from agents.report import write_report
+
+    try:
+        report = write_report(
+            [Path(m) for m in args.models],
+            Path(args.out),
+            episodes=args.episodes,
+            conditions=args.conditions,
+            seed=args.seed,
+        )
+    except ValueError as err:
+        log.error("%s", err)
+        return 2
+    sys.stdout.write(f"report: {Path(args.out) / 'report.md'}\n")
+    for policy, by_cond in report["results"].items():
+        for cond, r in by_cond.items():
+            sys.stdout.write(
+                f"  {policy:>20} | {cond:>13} | progress {r['progress_mean_m']:+.3f} m | "
+                f"rolls {r['rolls_per_episode']:.1f} | "
+                f"CoM error {100 * r['com_error_mean_m']:.2f} cm\n"
+            )
+    return 0
+
+
+def _gait(args: argparse.Namespace) -> int:
     from agents.demo import run_gait
 
     summary = run_gait(
@@ -115,13 +186,54 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    demo = sub.add_parser("demo", help="roll the 3-bar robot with its scripted gait; plot the CoM")
-    demo.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
-    demo.add_argument("--steps", type=int, default=300, help="control steps (10 Hz)")
+    from agents.evaluate import CONDITIONS
+    from agents.train import ALGORITHMS
+    from tensegrity_gym.envs.factory import ESTIMATORS
+
+    demo = sub.add_parser(
+        "demo",
+        help="the main job: train PPO with the UKF in the loop (and on ground truth), "
+        "evaluate, write the report",
+    )
+    demo.add_argument("--timesteps", type=int, default=150_000, help="UKF training steps")
+    demo.add_argument(
+        "--oracle-timesteps", type=int, default=100_000, help="ground-truth training (0: skip)"
+    )
+    demo.add_argument("--episodes", type=int, default=5, help="evaluation episodes per row")
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--estimator", default="ukf", choices=["ukf", "oracle"])
-    demo.add_argument("--out", default="demo_out", help="folder for the plot and summary")
+    demo.add_argument("--out", default="demo_out")
+    demo.add_argument("--no-progress", action="store_true", help="no progress bars")
     demo.set_defaults(func=_demo)
+
+    tr = sub.add_parser("train", help="train a policy with stable-baselines3")
+    tr.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
+    tr.add_argument("--algo", default="ppo", choices=list(ALGORITHMS))
+    tr.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    tr.add_argument("--timesteps", type=int, default=None, help="default: the config's")
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--n-envs", type=int, default=None, help="workers; default: the config's")
+    tr.add_argument("--config", default=None, help="hyperparameter YAML (rl-zoo3 layout)")
+    tr.add_argument("--out", required=True)
+    tr.add_argument("--no-progress", action="store_true", help="no progress bar")
+    tr.set_defaults(func=_train)
+
+    ev = sub.add_parser(
+        "evaluate", help="evaluate trained policies under each estimator; write the report"
+    )
+    ev.add_argument("models", nargs="+", help="training run folders (from train)")
+    ev.add_argument("--episodes", type=int, default=10)
+    ev.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=list(CONDITIONS))
+    ev.add_argument("--seed", type=int, default=1000)
+    ev.add_argument("--out", required=True)
+    ev.set_defaults(func=_evaluate)
+
+    gait = sub.add_parser("gait", help="roll a robot with its scripted gait; plot the CoM")
+    gait.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
+    gait.add_argument("--steps", type=int, default=300, help="control steps (10 Hz)")
+    gait.add_argument("--seed", type=int, default=0)
+    gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    gait.add_argument("--out", default="gait_out", help="folder for the plot and summary")
+    gait.set_defaults(func=_gait)
 
     bench = sub.add_parser("bench", help="measure env speed and memory; print JSON")
     bench.add_argument("--steps", type=int, default=2000, help="env steps timed per env")
@@ -142,8 +254,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)
-
-    from tensegrity_gym.envs.factory import ESTIMATORS
 
     rec = sub.add_parser("record", help="run a policy and write each episode to a ROS 2 bag")
     rec.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")

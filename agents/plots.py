@@ -10,10 +10,10 @@ if TYPE_CHECKING:
     import numpy as np
     from numpy.typing import NDArray
 
-__all__ = ["plot_com_paths", "plot_errors"]
+__all__ = ["plot_com_paths", "plot_errors", "pyplot"]
 
 
-def _pyplot() -> Any:
+def pyplot() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")  # headless: files only, no window
@@ -29,7 +29,7 @@ def plot_com_paths(
     title: str,
 ) -> None:
     """The true (if known) and estimated CoM seen from above; paths (T, 3) in metres."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 5))
     ref = true_path if true_path is not None else est_path
     if true_path is not None:
@@ -57,7 +57,7 @@ def plot_errors(
 ) -> None:
     """Error curves (m) over time (s), in centimetres; ``marks`` are times to flag
     (re-initialisations)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.5))
     for label, values in series.items():
         ax.plot(t, 100.0 * values, label=label)

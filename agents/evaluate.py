@@ -1,0 +1,274 @@
+"""Evaluating policies under each estimator and under harder sensing: the sim-to-real gap
+that estimation alone opens.
+
+A condition is an estimator and a sensor suite. Every policy runs the same seeded
+episodes under every condition; what is measured comes from the simulator's truth:
+how far the CoM rolled toward the goal, whether it got one rod length there (success),
+how many times the robot tipped onto a new base triangle (rolls), the estimator's CoM
+error along the way, re-initialisations and simulator divergences.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any, cast
+
+import gymnasium as gym
+import numpy as np
+import yaml
+
+import tensegrity_gym  # noqa: F401  (registers the ids)
+from tensegrity_gym.model.description import load_robot
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+    from pathlib import Path
+
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.envs.roll_env import TensegrityEnv
+    from tensegrity_gym.model.description import RobotDescription
+
+__all__ = [
+    "CONDITIONS",
+    "Condition",
+    "EpisodeResult",
+    "LoadedPolicy",
+    "count_rolls",
+    "evaluate_policy",
+    "load_policy",
+]
+
+log = logging.getLogger(__name__)
+
+
+def _more_dropout(d: RobotDescription) -> RobotDescription:
+    uwb = replace(d.sensors.uwb, reject_fraction=(0.75, 0.9))
+    return replace(d, sensors=replace(d.sensors, uwb=uwb))
+
+
+def _half_the_anchors(d: RobotDescription) -> RobotDescription:
+    uwb = replace(d.sensors.uwb, anchors=d.sensors.uwb.anchors[::2])
+    return replace(d, sensors=replace(d.sensors, uwb=uwb))
+
+
+def _noisier_imu(d: RobotDescription) -> RobotDescription:
+    c = d.sensors.imu
+    imu = replace(
+        c,
+        accel_noise=5 * c.accel_noise,
+        gyro_noise=5 * c.gyro_noise,
+        accel_bias=5 * c.accel_bias,
+        gyro_bias=5 * c.gyro_bias,
+        mag_noise=5 * c.mag_noise,
+    )
+    return replace(d, sensors=replace(d.sensors, imu=imu))
+
+
+@dataclass(frozen=True)
+class Condition:
+    """An estimator and the sensors it works with."""
+
+    name: str
+    estimator: str
+    sensing: Callable[[RobotDescription], RobotDescription] | None = None
+    """Turns the robot's nominal sensor suite into this condition's; None: nominal."""
+    about: str = ""
+
+
+CONDITIONS: dict[str, Condition] = {
+    c.name: c
+    for c in (
+        Condition("oracle", "oracle", None, "ground truth"),
+        Condition("ukf", "ukf", None, "the UKF on the nominal sensors"),
+        Condition("ukf_dropout", "ukf", _more_dropout, "75-90 % of UWB packets lost"),
+        Condition("ukf_4_anchors", "ukf", _half_the_anchors, "4 UWB anchors instead of 8"),
+        Condition("ukf_imu_noise", "ukf", _noisier_imu, "IMU noise and biases x5"),
+    )
+}
+
+
+def count_rolls(node_z: NDArray[np.float64], hold: int = 3) -> int:
+    """Net rolls: tips onto a new base triangle, rocking back not counted.
+
+    The base is the set of the three lowest nodes, taken once it has held for ``hold``
+    steps; a tip back onto the base before the current one undoes the last roll, so a
+    robot rocking between two faces rolls at most once. Node heights (T, n).
+    """
+    faces = [frozenset(np.argsort(z, kind="stable")[:3].tolist()) for z in node_z]
+    if not faces:
+        return 0
+    visited = [faces[0]]  # the bases rolled through, with back-and-forth removed
+    candidate, run = None, 0
+    for face in faces[1:]:
+        if face == visited[-1]:
+            candidate, run = None, 0
+            continue
+        run = run + 1 if face == candidate else 1
+        candidate = face
+        if run >= hold:
+            if len(visited) > 1 and face == visited[-2]:
+                visited.pop()  # rocked back
+            else:
+                visited.append(face)
+            candidate, run = None, 0
+    return len(visited) - 1
+
+
+@dataclass
+class EpisodeResult:
+    progress: float
+    """True CoM displacement along the goal heading (m)."""
+    rolls: int
+    success: bool
+    com_error_mean: float
+    """Mean distance between estimated and true CoM (m)."""
+    reinitialisations: int
+    diverged: bool
+    episode_return: float
+    true_path: NDArray[np.float64] = field(repr=False)
+    est_path: NDArray[np.float64] = field(repr=False)
+    errors: NDArray[np.float64] = field(repr=False)
+
+
+@dataclass
+class LoadedPolicy:
+    """A trained model with the observation normalisation it was trained with."""
+
+    name: str
+    env_id: str
+    trained_on: str
+    act: Callable[[NDArray[np.float32]], NDArray[np.float32]]
+
+
+def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
+    """A policy saved by :func:`agents.train.train` (``model.zip``, ``config.yaml`` and
+    ``vecnormalize.pkl`` when it normalised); clear errors for a missing or foreign file."""
+    import pickle
+
+    from stable_baselines3 import PPO, SAC
+
+    config_file = run_dir / "config.yaml"
+    model_file = run_dir / "model.zip"
+    if not model_file.exists() or not config_file.exists():
+        raise ValueError(f"{run_dir}: not a training run (needs model.zip and config.yaml)")
+    try:
+        config = yaml.safe_load(config_file.read_text())
+        env_id, algo, trained_on = config["env_id"], config["algo"], config["estimator"]
+    except (yaml.YAMLError, KeyError, TypeError) as err:
+        raise ValueError(f"{config_file}: not a training config: {err}") from None
+    classes: dict[str, Any] = {"ppo": PPO, "sac": SAC}
+    if algo not in classes:
+        raise ValueError(f"{config_file}: unknown algorithm {algo!r}")
+    try:
+        model = classes[algo].load(model_file, device="cpu")
+    except Exception as err:  # a corrupted zip fails in many ways inside SB3
+        raise ValueError(f"{model_file}: cannot load a {algo} model: {err}") from None
+    env = gym.make(env_id, estimator="oracle")
+    space = env.observation_space
+    env.close()
+    if model.observation_space.shape != space.shape:
+        raise ValueError(
+            f"{model_file}: the model observes {model.observation_space.shape}, "
+            f"but {env_id} gives {space.shape}: a model of another env"
+        )
+    normalise: Callable[[Any], Any] = lambda obs: obs  # noqa: E731
+    stats_file = run_dir / "vecnormalize.pkl"
+    if stats_file.exists():
+        with stats_file.open("rb") as f:
+            stats = pickle.load(f)
+        stats.training = False
+        normalise = stats.normalize_obs
+
+    def act(obs: NDArray[np.float32]) -> NDArray[np.float32]:
+        action, _ = model.predict(normalise(obs), deterministic=True)
+        return np.asarray(action, dtype=np.float32)
+
+    return LoadedPolicy(name or f"trained on {trained_on}", env_id, trained_on, act)
+
+
+def random_policy(env_id: str, seed: int) -> LoadedPolicy:
+    """Uniform random actions, from a generator seeded with ``seed``."""
+    env = gym.make(env_id, estimator="oracle")
+    low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
+    env.close()
+    rng = np.random.default_rng(seed)
+    return LoadedPolicy(
+        "random", env_id, "-", lambda obs: rng.uniform(low, high).astype(np.float32)
+    )
+
+
+def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> EpisodeResult:
+    inner = cast("TensegrityEnv", env.unwrapped)
+    d = inner.backend.description
+    obs, info = env.reset(seed=seed)
+    goal = inner.task.direction.copy()  # the goal heading drawn (or fixed) at reset
+    true_path, est_path, node_z = [info["com_true"]], [info["com_estimate"]], []
+    truth = inner.backend.ground_truth()
+    assert truth is not None
+    node_z.append(truth.node_positions[:, 2])
+    total, reinit, diverged = 0.0, 0, False
+    done = False
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(act(obs))
+        total += float(reward)
+        reinit += int(info["estimator_reinitialised"])
+        if info["sim_diverged"]:
+            diverged = True
+            break
+        true_path.append(info["com_true"])
+        est_path.append(info["com_estimate"])
+        truth = inner.backend.ground_truth()
+        assert truth is not None
+        node_z.append(truth.node_positions[:, 2])
+        done = terminated or truncated
+    true = np.array(true_path)
+    est = np.array(est_path)
+    progress = float((true[-1, :2] - true[0, :2]) @ goal)
+    errors = np.linalg.norm(est - true, axis=-1)
+    return EpisodeResult(
+        progress=progress,
+        rolls=count_rolls(np.array(node_z)),
+        success=progress >= d.characteristic_length,
+        com_error_mean=float(errors.mean()),
+        reinitialisations=reinit,
+        diverged=diverged,
+        episode_return=total,
+        true_path=true,
+        est_path=est,
+        errors=errors,
+    )
+
+
+def evaluate_policy(
+    policy: LoadedPolicy,
+    condition: Condition,
+    episodes: int,
+    seed: int = 1000,
+) -> list[EpisodeResult]:
+    """``episodes`` episodes of ``policy`` under ``condition``, seeds ``seed``, ``seed+1``..."""
+    robot = gym.spec(policy.env_id).kwargs.get("robot", "three_bar")
+    description = load_robot(robot)
+    if condition.sensing is not None:
+        description = condition.sensing(description)
+    env = gym.make(policy.env_id, robot=description, estimator=condition.estimator)
+    try:
+        return [run_episode(env, policy.act, seed + k) for k in range(episodes)]
+    finally:
+        env.close()
+
+
+def summarise(results: Sequence[EpisodeResult]) -> dict[str, Any]:
+    progress = np.array([r.progress for r in results])
+    return {
+        "episodes": len(results),
+        "progress_mean_m": round(float(progress.mean()), 3),
+        "progress_std_m": round(float(progress.std()), 3),
+        "success_rate": round(float(np.mean([r.success for r in results])), 3),
+        "rolls_per_episode": round(float(np.mean([r.rolls for r in results])), 2),
+        "com_error_mean_m": round(float(np.mean([r.com_error_mean for r in results])), 4),
+        "reinitialisations": int(sum(r.reinitialisations for r in results)),
+        "divergences": int(sum(r.diverged for r in results)),
+        "return_mean": round(float(np.mean([r.episode_return for r in results])), 2),
+    }

@@ -1,0 +1,243 @@
+"""The sim-to-real report: every policy under every condition, as a Markdown page with
+a table and plots, and the same numbers as JSON."""
+
+from __future__ import annotations
+
+import json
+import logging
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from agents.evaluate import (
+    CONDITIONS,
+    evaluate_policy,
+    load_policy,
+    random_policy,
+    summarise,
+)
+from agents.plots import pyplot
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+    from pathlib import Path
+
+    from agents.evaluate import EpisodeResult, LoadedPolicy
+
+__all__ = ["write_report"]
+
+log = logging.getLogger(__name__)
+
+TARGET_PROGRESS_RATIO = 3.0
+TARGET_ROLLS = 1.0
+
+
+def _monitor_curve(run_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(timesteps, episode return) from the Monitor logs of a training run."""
+    files = sorted((run_dir / "monitor").glob("*.monitor.csv"))
+    rows = []
+    for f in files:
+        lines = f.read_text().splitlines()[2:]  # a JSON comment line, then the header
+        for line in lines:
+            r, length, t = line.split(",")[:3]
+            rows.append((float(t), float(r), int(length)))
+    if not rows:
+        return None
+    rows.sort()
+    steps = np.cumsum([length for _, _, length in rows])
+    return steps, np.array([r for _, r, _ in rows])
+
+
+def _plot_paths(results: dict[str, dict[str, list[EpisodeResult]]], file: Path, title: str) -> None:
+    plt = pyplot()
+    names = list(results)
+    conditions = list(next(iter(results.values())))
+    fig, axes = plt.subplots(
+        1, len(conditions), figsize=(3.2 * len(conditions), 3.4), squeeze=False
+    )
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for ax, cond in zip(axes[0], conditions, strict=True):
+        for k, name in enumerate(names):
+            for e, ep in enumerate(results[name][cond][:3]):
+                c = colours[k % len(colours)]
+                label = name if e == 0 else None
+                ax.plot(ep.true_path[:, 0], ep.true_path[:, 1], "-", color=c, label=label)
+                ax.plot(ep.est_path[:, 0], ep.est_path[:, 1], ":", color=c, alpha=0.8)
+        ax.plot(0, 0, "k+")
+        ax.set_title(cond, fontsize=9)
+        ax.set_xlabel("x (m)")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(True, alpha=0.3)
+    axes[0][0].set_ylabel("y (m)")
+    axes[0][0].legend(fontsize=7, loc="best")
+    fig.suptitle(f"{title}: CoM from above, true (solid) and estimated (dotted); goal +x")
+    fig.tight_layout()
+    fig.savefig(file, dpi=110)
+    plt.close(fig)
+
+
+def _plot_errors(results: dict[str, dict[str, list[EpisodeResult]]], file: Path) -> None:
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    name = next(n for n in results if n != "random")
+    for cond, episodes in results[name].items():
+        if cond == "oracle":
+            continue
+        length = min(len(ep.errors) for ep in episodes)
+        mean = np.mean([ep.errors[:length] for ep in episodes], axis=0)
+        ax.plot(0.1 * np.arange(length), 100 * mean, label=cond)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("CoM error (cm)")
+    ax.set_title(f"estimation error along the way ({name}, mean over episodes)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(file, dpi=110)
+    plt.close(fig)
+
+
+def _plot_training(curves: dict[str, tuple[np.ndarray, np.ndarray]], file: Path) -> None:
+    plt = pyplot()
+    fig, ax = plt.subplots(figsize=(7, 3.5))
+    for name, (steps, returns) in curves.items():
+        window = max(1, len(returns) // 20)
+        smooth = np.convolve(returns, np.ones(window) / window, mode="valid")
+        ax.plot(steps[window - 1 :], smooth, label=name)
+    ax.set_xlabel("training steps")
+    ax.set_ylabel("episode return")
+    ax.set_title("training reward (Monitor, moving average)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(file, dpi=110)
+    plt.close(fig)
+
+
+def write_report(
+    run_dirs: Sequence[Path],
+    out: Path,
+    *,
+    episodes: int = 5,
+    conditions: Sequence[str] = tuple(CONDITIONS),
+    seed: int = 1000,
+    include_random: bool = True,
+) -> dict[str, Any]:
+    """Evaluate the trained policies of ``run_dirs`` (and a random policy) under
+    ``conditions``; write ``report.md``, ``report.json`` and the plots into ``out``."""
+    unknown = [c for c in conditions if c not in CONDITIONS]
+    if unknown:
+        raise ValueError(f"unknown conditions {unknown}; valid choices: {list(CONDITIONS)}")
+    if not run_dirs:
+        raise ValueError("no trained model to evaluate")
+    policies: list[LoadedPolicy] = [load_policy(d) for d in run_dirs]
+    env_ids = {p.env_id for p in policies}
+    if len(env_ids) > 1:
+        raise ValueError(f"the models are of different envs: {sorted(env_ids)}")
+    env_id = env_ids.pop()
+    names = [p.name for p in policies]
+    if len(set(names)) < len(names):  # two runs trained on the same estimator
+        for p, d in zip(policies, run_dirs, strict=True):
+            p.name = f"{p.name} ({d.name})"
+    if include_random:
+        policies.append(random_policy(env_id, seed))
+    out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict[str, list[EpisodeResult]]] = {}
+    for policy in policies:
+        results[policy.name] = {}
+        for cond in conditions:
+            log.info("evaluating %s under %s", policy.name, cond)
+            results[policy.name][cond] = evaluate_policy(policy, CONDITIONS[cond], episodes, seed)
+    table = {p: {c: summarise(r) for c, r in by_cond.items()} for p, by_cond in results.items()}
+
+    checks: dict[str, Any] = {}
+    if include_random:
+        baseline_cond = "ukf" if "ukf" in conditions else conditions[0]
+        random_progress = table["random"][baseline_cond]["progress_mean_m"]
+        for p in policies[:-1]:
+            row = table[p.name][baseline_cond]
+            ratio = row["progress_mean_m"] / max(abs(random_progress), 1e-3)
+            checks[p.name] = {
+                "condition": baseline_cond,
+                "progress_vs_random": round(ratio, 1),
+                "rolls_per_episode": row["rolls_per_episode"],
+                "rolls_target_met": row["rolls_per_episode"] >= TARGET_ROLLS,
+                "progress_target_met": ratio >= TARGET_PROGRESS_RATIO,
+            }
+
+    _plot_paths(results, out / "com_paths.png", env_id.split("/")[-1])
+    _plot_errors(results, out / "estimation_error.png")
+    curves = {
+        p.name: c
+        for p, d in zip(policies, run_dirs, strict=False)
+        if (c := _monitor_curve(d)) is not None
+    }
+    if curves:
+        _plot_training(curves, out / "training.png")
+
+    report = {
+        "env": env_id,
+        "episodes": episodes,
+        "seed": seed,
+        "conditions": {c: CONDITIONS[c].about for c in conditions},
+        "results": table,
+        "checks": checks,
+        "runs": [str(d) for d in run_dirs],
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
+    (out / "report.md").write_text(_markdown(report, bool(curves)))
+    return report
+
+
+def _markdown(report: dict[str, Any], training_plot: bool) -> str:
+    env = report["env"]
+    lines = [
+        f"# {env.split('/')[-1]}: what estimation costs a rolling policy",
+        "",
+        f"{report['episodes']} episodes per policy and condition (seeds {report['seed']}..."
+        f"{report['seed'] + report['episodes'] - 1}, the same for every row). Progress is the "
+        "true CoM's displacement along the goal heading over the episode; success is a "
+        "progress of at least one rod length; a roll is a tip onto a new base triangle.",
+        "",
+    ]
+    checks = report["checks"]
+    if checks:
+        lines += ["## Headline", ""]
+        for name, c in checks.items():
+            lines.append(
+                f"- **{name}**, under `{c['condition']}`: {c['progress_vs_random']}x the "
+                f"progress of a random policy (target {TARGET_PROGRESS_RATIO:g}x: "
+                f"{'met' if c['progress_target_met'] else 'NOT met'}), "
+                f"{c['rolls_per_episode']} rolls per episode (target {TARGET_ROLLS:g}: "
+                f"{'met' if c['rolls_target_met'] else 'NOT met'})."
+            )
+        lines.append("")
+    lines += [
+        "## Every policy under every condition",
+        "",
+        "| policy | condition | progress (m) | success | rolls / ep. | CoM error (cm) "
+        "| re-inits | divergences | return |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for policy, by_cond in report["results"].items():
+        for cond, r in by_cond.items():
+            lines.append(
+                f"| {policy} | {cond} | {r['progress_mean_m']:.3f} ± {r['progress_std_m']:.3f} "
+                f"| {100 * r['success_rate']:.0f} % | {r['rolls_per_episode']:.1f} "
+                f"| {100 * r['com_error_mean_m']:.2f} | {r['reinitialisations']} "
+                f"| {r['divergences']} | {r['return_mean']:.1f} |"
+            )
+    lines += ["", "Conditions:", ""]
+    lines += [f"- `{c}`: {about}" for c, about in report["conditions"].items()]
+    lines += [
+        "",
+        "## Plots",
+        "",
+        "![CoM paths](com_paths.png)",
+        "",
+        "![Estimation error](estimation_error.png)",
+        "",
+    ]
+    if training_plot:
+        lines += ["![Training reward](training.png)", ""]
+    lines += ["Numbers: `report.json`. Training runs: " + ", ".join(report["runs"]), ""]
+    return "\n".join(lines)

@@ -1,0 +1,256 @@
+"""Training rolling policies with stable-baselines3, the estimator in the loop.
+
+Hyperparameters come from ``agents/configs/<algo>.yml`` (rl-zoo3's layout: one mapping
+per env id). Each worker builds its own env, UKF included, from the env id; nothing
+with a simulator or filter in it is pickled. The run folder gets the final model and its
+normalisation statistics, checkpoints, Monitor logs, TensorBoard logs, and the exact
+configuration it ran with (``config.yaml``).
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+import logging
+import os
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import yaml
+
+from tensegrity_gym.envs.factory import ESTIMATORS
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from stable_baselines3.common.base_class import BaseAlgorithm
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import VecEnv
+
+__all__ = [
+    "ALGORITHMS",
+    "CONFIG_DIR",
+    "TrainConfig",
+    "load_hyperparams",
+    "make_training_env",
+    "parse_config_value",
+    "train",
+]
+
+log = logging.getLogger(__name__)
+
+CONFIG_DIR = Path(__file__).parent / "configs"
+ALGORITHMS = ("ppo", "sac")
+# Keys of a config entry that are not arguments of the algorithm (rl-zoo3's meaning).
+_RUN_KEYS = {"n_envs", "n_timesteps", "policy", "normalize", "policy_kwargs"}
+# Arguments the trainer sets itself.
+_OWN_ARGS = {
+    "self",
+    "env",
+    "policy",
+    "verbose",
+    "seed",
+    "device",
+    "tensorboard_log",
+    "_init_setup_model",
+    "policy_kwargs",
+}
+
+
+def _algorithm_class(algo: str) -> type[BaseAlgorithm]:
+    import stable_baselines3 as sb3
+
+    classes: dict[str, type[BaseAlgorithm]] = {"ppo": sb3.PPO, "sac": sb3.SAC}
+    if algo not in classes:
+        raise ValueError(f"unknown algorithm {algo!r}; valid choices: {list(ALGORITHMS)}")
+    return classes[algo]
+
+
+def parse_config_value(text: str, where: str) -> Any:
+    """An rl-zoo3 string value such as ``"dict(net_arch=[64, 64], log_std_init=-0.5)"``,
+    read without ``eval``: ``dict(...)`` calls, lists, tuples and literals only."""
+
+    def convert(node: ast.AST) -> Any:
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+            if node.func.id == "dict" and not node.args:
+                return {kw.arg: convert(kw.value) for kw in node.keywords if kw.arg}
+        if isinstance(node, (ast.List, ast.Tuple)):  # lists: the config is written back as YAML
+            return [convert(e) for e in node.elts]
+        if isinstance(node, ast.Dict):
+            pairs = zip(node.keys, node.values, strict=True)
+            return {convert(k): convert(v) for k, v in pairs if k is not None}
+        try:
+            return ast.literal_eval(node)
+        except ValueError:
+            raise ValueError(
+                f"{where}: {ast.unparse(node)!r} is not a literal or dict(...) call"
+            ) from None
+
+    try:
+        tree = ast.parse(text, mode="eval")
+    except SyntaxError as err:
+        raise ValueError(f"{where}: {text!r} is not an expression: {err.msg}") from None
+    return convert(tree.body)
+
+
+def load_hyperparams(algo: str, env_id: str, config_file: Path | None = None) -> dict[str, Any]:
+    """The checked hyperparameters of ``env_id`` for ``algo``; unknown keys fail at once
+    with the list of valid ones."""
+    cls = _algorithm_class(algo)
+    path = config_file or CONFIG_DIR / f"{algo}.yml"
+    try:
+        doc = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise ValueError(f"cannot read the config {path}: {err}") from None
+    if not isinstance(doc, dict) or env_id not in doc:
+        ids = sorted(doc) if isinstance(doc, dict) else []
+        raise ValueError(f"{path}: no entry for {env_id!r}; entries: {ids}")
+    params = dict(doc[env_id])
+    valid = _RUN_KEYS | (set(inspect.signature(cls.__init__).parameters) - _OWN_ARGS)
+    unknown = sorted(set(params) - valid)
+    if unknown:
+        raise ValueError(
+            f"{path}: {env_id}: unknown keys {unknown} for {algo}; valid keys: {sorted(valid)}"
+        )
+    for key in ("normalize", "policy_kwargs"):
+        if isinstance(params.get(key), str):
+            params[key] = parse_config_value(params[key], f"{path}: {env_id}.{key}")
+    return params
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything a training run depends on; written to ``config.yaml``."""
+
+    env_id: str
+    algo: str
+    estimator: str
+    timesteps: int
+    seed: int
+    n_envs: int
+    hyperparams: dict[str, Any] = field(default_factory=dict)
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+
+
+def make_training_env(
+    env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any], monitor_dir: Path | None
+) -> VecEnv:
+    """``n_envs`` Monitor-wrapped envs, in subprocesses where there is more than one core."""
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+    # A fresh worker interpreter registers the ids by importing the module the id names.
+    qualified = env_id if ":" in env_id else f"tensegrity_gym:{env_id}"
+    use_processes = n_envs > 1 and (os.cpu_count() or 1) > 1
+    return make_vec_env(
+        qualified,
+        n_envs=n_envs,
+        seed=seed,
+        env_kwargs=env_kwargs,
+        monitor_dir=str(monitor_dir) if monitor_dir is not None else None,
+        vec_env_cls=SubprocVecEnv if use_processes else DummyVecEnv,
+    )
+
+
+def train(
+    env_id: str,
+    algo: str,
+    estimator: str,
+    out: Path,
+    *,
+    timesteps: int | None = None,
+    seed: int = 0,
+    n_envs: int | None = None,
+    config_file: Path | None = None,
+    checkpoint_every: int = 50_000,
+    progress_bar: bool = True,
+    env_kwargs: dict[str, Any] | None = None,
+    callbacks: Sequence[BaseCallback] = (),
+) -> Path:
+    """Train, and return the path of the saved model (``out/model.zip``).
+
+    ``out`` receives ``model.zip`` and ``vecnormalize.pkl`` (when the config normalises),
+    ``config.yaml``, ``checkpoints/``, ``monitor/`` and ``tb/`` (TensorBoard);
+    ``callbacks`` run beside the checkpointing. Ctrl-C
+    saves the model reached so far as ``out/model.zip`` (``config.yaml`` then says
+    ``interrupted: true``) and re-raises.
+    """
+    import gymnasium as gym
+    import torch
+    from stable_baselines3.common.callbacks import CheckpointCallback
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"unknown estimator {estimator!r}; valid choices: {list(ESTIMATORS)}")
+    if env_id not in gym.registry:
+        import tensegrity_gym  # noqa: F401  (registers the ids)
+    if env_id not in gym.registry:
+        ids = sorted(k for k in gym.registry if k.startswith("tensegrity_gym/"))
+        raise ValueError(f"unknown env id {env_id!r}; valid choices: {ids}")
+    params = load_hyperparams(algo, env_id, config_file)
+    cls = _algorithm_class(algo)
+    total = int(timesteps if timesteps is not None else params.pop("n_timesteps", 100_000))
+    params.pop("n_timesteps", None)
+    workers = int(n_envs if n_envs is not None else params.pop("n_envs", 1))
+    params.pop("n_envs", None)
+    if total < 1 or workers < 1:
+        raise ValueError(f"timesteps ({total}) and n_envs ({workers}) must be positive")
+    kwargs = {"estimator": estimator, **(env_kwargs or {})}
+    config = TrainConfig(env_id, algo, estimator, total, seed, workers, dict(params), kwargs)
+
+    out.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(1)  # small networks: threads only contend with the env workers
+    venv = make_training_env(env_id, workers, seed, kwargs, out / "monitor")
+    normalize = params.pop("normalize", False)
+    if normalize:
+        norm_kwargs = normalize if isinstance(normalize, dict) else {}
+        venv = VecNormalize(venv, gamma=params.get("gamma", 0.99), **norm_kwargs)
+    policy = params.pop("policy", "MlpPolicy")
+    policy_kwargs = params.pop("policy_kwargs", None)
+    tb: str | None = str(out / "tb")
+    try:
+        import tensorboard  # noqa: F401
+    except ImportError:
+        log.warning("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
+        tb = None
+    model = cls(
+        policy,
+        venv,
+        policy_kwargs=policy_kwargs,
+        seed=seed,
+        device="cpu",
+        verbose=0,
+        tensorboard_log=tb,
+        **params,
+    )
+    checkpoints = CheckpointCallback(
+        save_freq=max(checkpoint_every // workers, 1),
+        save_path=str(out / "checkpoints"),
+        name_prefix="model",
+        save_vecnormalize=True,
+    )
+    interrupted = False
+    try:
+        model.learn(
+            total,
+            callback=[checkpoints, *callbacks],
+            progress_bar=progress_bar,
+            tb_log_name=algo,
+        )
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted after %d steps: saving the model reached", model.num_timesteps)
+    finally:
+        model.save(out / "model.zip")
+        if isinstance(venv, VecNormalize):
+            venv.save(str(out / "vecnormalize.pkl"))
+        record = asdict(config) | {
+            "completed_timesteps": int(model.num_timesteps),
+            "interrupted": interrupted,
+        }
+        (out / "config.yaml").write_text(yaml.safe_dump(record, sort_keys=False))
+        venv.close()
+    if interrupted:
+        raise KeyboardInterrupt
+    return out / "model.zip"

@@ -1,0 +1,242 @@
+"""Training with stable-baselines3, evaluation, the report, and their bad input."""
+
+from __future__ import annotations
+
+import json
+import pickle
+from typing import TYPE_CHECKING
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import yaml
+from stable_baselines3.common.callbacks import BaseCallback
+
+import tensegrity_gym  # noqa: F401
+from agents.evaluate import CONDITIONS, count_rolls, evaluate_policy, load_policy
+from agents.report import write_report
+from agents.train import load_hyperparams, parse_config_value, train
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
+
+
+def _tiny_config(tmp: Path) -> Path:
+    """A PPO config small enough to train in seconds."""
+    config = {
+        THREE_BAR: {
+            "n_envs": 1,
+            "policy": "MlpPolicy",
+            "normalize": "dict(norm_obs=True, norm_reward=True)",
+            "n_steps": 64,
+            "batch_size": 32,
+            "n_epochs": 2,
+            "policy_kwargs": "dict(net_arch=dict(pi=[16], vf=[16]))",
+        }
+    }
+    path = tmp / "tiny.yml"
+    path.write_text(yaml.safe_dump(config))
+    return path
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    tmp = tmp_path_factory.mktemp("train")
+    out = tmp / "run"
+    train(
+        THREE_BAR,
+        "ppo",
+        "oracle",
+        out,
+        timesteps=128,
+        seed=3,
+        config_file=_tiny_config(tmp),
+        progress_bar=False,
+        checkpoint_every=64,
+        env_kwargs={"max_episode_steps": 50},  # episodes end, so the Monitor has a curve
+    )
+    return out
+
+
+# ---------------------------------------------------------------------- configs
+
+
+def test_shipped_configs_load_for_every_registered_id() -> None:
+    ids = [k for k in gym.registry if k.startswith("tensegrity_gym/")]
+    for algo in ("ppo", "sac"):
+        for env_id in ids:
+            params = load_hyperparams(algo, env_id)
+            assert params["n_timesteps"] > 0 and params["policy"] == "MlpPolicy"
+            assert isinstance(params["policy_kwargs"], dict)
+            assert isinstance(params["normalize"], dict)
+
+
+def test_config_values_are_read_without_eval() -> None:
+    assert parse_config_value("dict(net_arch=dict(pi=[64, 64]), log_std_init=-0.5)", "x") == {
+        "net_arch": {"pi": [64, 64]},
+        "log_std_init": -0.5,
+    }
+    for bad in ("__import__('os').system('true')", "nn.ReLU", "dict(a=open('f'))"):
+        with pytest.raises(ValueError, match="not a literal"):
+            parse_config_value(bad, "policy_kwargs")
+    with pytest.raises(ValueError, match="not an expression"):
+        parse_config_value("dict(", "policy_kwargs")
+
+
+def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
+    tmp_path: Path,
+) -> None:
+    config = tmp_path / "bad.yml"
+    config.write_text(yaml.safe_dump({THREE_BAR: {"n_steps": 64, "learning_rat": 0.1}}))
+    with pytest.raises(ValueError, match=r"unknown keys \['learning_rat'\].*learning_rate"):
+        load_hyperparams("ppo", THREE_BAR, config)
+    with pytest.raises(ValueError, match="no entry for 'tensegrity_gym/Nope-v0'"):
+        load_hyperparams("ppo", "tensegrity_gym/Nope-v0")
+    with pytest.raises(
+        ValueError, match=r"unknown algorithm 'dqn'; valid choices: \['ppo', 'sac'\]"
+    ):
+        load_hyperparams("dqn", THREE_BAR)
+    with pytest.raises(ValueError, match="unknown estimator 'kalman'"):
+        train(THREE_BAR, "ppo", "kalman", tmp_path / "x")
+    with pytest.raises(ValueError, match=r"unknown env id.*ThreeBarRoll-v0"):
+        train("tensegrity_gym/Nope-v0", "ppo", "ukf", tmp_path / "x")
+
+
+# ---------------------------------------------------------------------- training
+
+
+def test_training_writes_model_statistics_config_logs_and_checkpoints(tiny_run: Path) -> None:
+    for name in ("model.zip", "vecnormalize.pkl", "config.yaml"):
+        assert (tiny_run / name).stat().st_size > 0
+    config = yaml.safe_load((tiny_run / "config.yaml").read_text())
+    assert config["env_id"] == THREE_BAR and config["estimator"] == "oracle"
+    assert config["seed"] == 3 and config["completed_timesteps"] == 128
+    assert config["hyperparams"]["n_steps"] == 64 and not config["interrupted"]
+    assert sorted(p.name for p in (tiny_run / "checkpoints").glob("*.zip")) == [
+        "model_128_steps.zip",
+        "model_64_steps.zip",
+    ]
+    assert list((tiny_run / "monitor").glob("*.monitor.csv"))
+    assert list((tiny_run / "tb").rglob("events.out.tfevents.*"))  # TensorBoard reads these
+
+
+def test_a_trained_policy_loads_and_acts_on_the_env(tiny_run: Path) -> None:
+    policy = load_policy(tiny_run)
+    assert policy.env_id == THREE_BAR and policy.trained_on == "oracle"
+    results = evaluate_policy(policy, CONDITIONS["ukf"], episodes=1, seed=5)
+    [r] = results
+    assert np.isfinite(r.progress) and r.true_path.shape[1] == 3
+    assert r.com_error_mean > 0.0  # the UKF is not the truth
+    again = evaluate_policy(policy, CONDITIONS["ukf"], episodes=1, seed=5)
+    assert again[0].progress == r.progress  # the same seed, the same episode
+
+
+def test_a_corrupted_or_foreign_model_gives_a_clear_error(tiny_run: Path, tmp_path: Path) -> None:
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "config.yaml").write_text((tiny_run / "config.yaml").read_text())
+    (broken / "model.zip").write_bytes(b"not a zip at all")
+    with pytest.raises(ValueError, match="cannot load a ppo model"):
+        load_policy(broken)
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "model.zip").write_bytes((tiny_run / "model.zip").read_bytes())
+    config = yaml.safe_load((tiny_run / "config.yaml").read_text())
+    config["env_id"] = "tensegrity_gym/SuperBallRoll-v0"
+    (foreign / "config.yaml").write_text(yaml.safe_dump(config))
+    with pytest.raises(ValueError, match="a model of another env"):
+        load_policy(foreign)
+    with pytest.raises(ValueError, match="not a training run"):
+        load_policy(tmp_path)
+
+
+class _Interrupt(BaseCallback):
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= 96:
+            raise KeyboardInterrupt
+        return True
+
+
+def test_ctrl_c_during_training_leaves_a_usable_model(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        train(
+            THREE_BAR,
+            "ppo",
+            "oracle",
+            out,
+            timesteps=10_000,
+            config_file=_tiny_config(tmp_path),
+            progress_bar=False,
+            callbacks=[_Interrupt()],
+        )
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["interrupted"] and 96 <= config["completed_timesteps"] < 10_000
+    policy = load_policy(out)
+    obs = np.zeros(gym.make(THREE_BAR).observation_space.shape, dtype=np.float32)
+    assert policy.act(obs).shape == (6,)
+
+
+def test_an_env_with_the_ukf_pickles_for_worker_processes() -> None:
+    env = gym.make(THREE_BAR, estimator="ukf")
+    env.reset(seed=0)
+    env.step(env.action_space.sample())
+    clone = pickle.loads(pickle.dumps(env.unwrapped))
+    a, _ = clone.reset(seed=4)
+    b, _ = env.unwrapped.reset(seed=4)
+    assert np.array_equal(a, b)
+    env.close()
+    clone.close()
+
+
+# ---------------------------------------------------------------------- evaluation
+
+
+def test_count_rolls_counts_net_tips_onto_new_base_triangles() -> None:
+    def heights(faces: list[tuple[int, ...]], repeat: int = 4) -> np.ndarray:
+        z = []
+        for face in faces:
+            row = np.ones(6)
+            row[list(face)] = 0.0
+            z += [row] * repeat
+        return np.array(z)
+
+    assert count_rolls(heights([(0, 1, 2)])) == 0
+    assert count_rolls(heights([(0, 1, 2), (1, 2, 3), (2, 3, 4)])) == 2
+    assert count_rolls(heights([(0, 1, 2), (1, 2, 3), (0, 1, 2), (1, 2, 3)])) == 1  # rocking
+    assert count_rolls(heights([(0, 1, 2), (1, 2, 3)], repeat=2)) == 0  # too brief to count
+
+
+def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Path) -> None:
+    report = write_report(
+        [tiny_run], tmp_path / "report", episodes=1, conditions=("oracle", "ukf_4_anchors")
+    )
+    assert set(report["results"]) == {"trained on oracle", "random"}
+    row = report["results"]["trained on oracle"]["ukf_4_anchors"]
+    assert row["episodes"] == 1 and row["com_error_mean_m"] > 0
+    assert report["results"]["random"]["oracle"]["com_error_mean_m"] == 0.0
+    check = report["checks"]["trained on oracle"]
+    assert check["condition"] == "oracle" and "progress_vs_random" in check
+    text = (tmp_path / "report" / "report.md").read_text()
+    assert "| trained on oracle | ukf_4_anchors |" in text and "![CoM paths]" in text
+    for name in ("com_paths.png", "estimation_error.png", "training.png", "report.json"):
+        assert (tmp_path / "report" / name).stat().st_size > 0
+    assert json.loads((tmp_path / "report" / "report.json").read_text())["env"] == THREE_BAR
+    with pytest.raises(ValueError, match="unknown conditions"):
+        write_report([tiny_run], tmp_path / "r2", conditions=("ukf", "fog"))
+
+
+@pytest.mark.slow
+def test_training_is_reproducible_over_its_first_10000_steps(tmp_path: Path) -> None:
+    def rewards(out: Path) -> list[str]:
+        train(THREE_BAR, "ppo", "ukf", out, timesteps=10_240, seed=7, progress_bar=False)
+        rows = []
+        for f in sorted((out / "monitor").glob("*.monitor.csv")):
+            rows += [line.split(",")[:2] for line in f.read_text().splitlines()[2:]]
+        return [",".join(r) for r in rows]
+
+    first, second = rewards(tmp_path / "a"), rewards(tmp_path / "b")
+    assert len(first) >= 60  # 10,240 steps of 300-step episodes over two workers
+    assert first == second
