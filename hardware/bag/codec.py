@@ -10,6 +10,7 @@ and time.
 from __future__ import annotations
 
 import math
+import struct
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -338,24 +339,33 @@ class RobotCodec:
             values = self._names_to_values(msg, self._cable_index, self.cable_names, "cable")
         return m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec), values
 
+    @staticmethod
+    def _fast(decode: Any, raw: Raw) -> Any:
+        """A hand-written decoder's fields; its ValueError (short bytes, a bad frame id)
+        becomes a MessageError."""
+        try:
+            return decode(raw)
+        except (ValueError, struct.error) as err:
+            raise MessageError(str(err)) from None
+
     def decode_imu_raw(self, raw: Raw) -> tuple[int, Vec, Vec]:
         """(stamp ns, gyro (3,), accel (3,))."""
-        ns, _, _, gyro, accel, provided = m.decode_imu(raw)
+        ns, _, _, gyro, accel, provided = self._fast(m.decode_imu, raw)
         if not (provided[1] and provided[2]):
             raise MessageError("the IMU message has no angular velocity or acceleration")
         _finite_values(gyro + accel, "gyro or acceleration")
         return ns, np.array(gyro), np.array(accel)
 
     def decode_mag(self, raw: Raw) -> tuple[int, Vec]:
-        ns, _, field = m.decode_magnetic_field(raw)
+        ns, _, field = self._fast(m.decode_magnetic_field, raw)
         _finite_values(field, "magnetic field")
         return ns, np.array(field)
 
     def decode_ahrs(self, raw: Raw) -> tuple[int, Vec]:
-        ns, _, q, _, _, provided = m.decode_imu(raw)
+        ns, _, q, _, _, provided = self._fast(m.decode_imu, raw)
         if not provided[0]:
             raise MessageError(
-                "no orientation in the AHRS message (orientation_covariance[0] = -1)"
+                "the AHRS message has orientation_covariance[0] = -1: no orientation"
             )
         _finite_values(q, "orientation")
         norm = math.sqrt(sum(v * v for v in q))
@@ -418,8 +428,9 @@ class RobotCodec:
         image = data.reshape(h, w, 3) if kind == "color" else data.view("<f4").reshape(h, w)
         return m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec), image
 
-    def decode_state(self, raw: Raw) -> tuple[float, Any]:
-        """(time, message) of a TensegrityState, its arrays checked against the robot."""
+    def decode_state(self, raw: Raw, n_rest: int) -> tuple[float, Any]:
+        """(time, message) of a TensegrityState, its sizes checked against the robot
+        (``n_rest`` rest lengths) and every value finite."""
         msg = self.deserialize(raw, m.STATE)
         n = self.description.n_nodes
         if len(msg.node_positions) != n or len(msg.node_velocities) != n:
@@ -427,6 +438,13 @@ class RobotCodec:
                 f"{len(msg.node_positions)} node positions and {len(msg.node_velocities)} "
                 f"velocities; the robot has {n} nodes"
             )
+        if len(msg.rest_lengths) != n_rest:
+            raise MessageError(f"{len(msg.rest_lengths)} rest lengths; expected {n_rest}")
+        c = msg.center_of_mass
+        values = [
+            v for p in (*msg.node_positions, *msg.node_velocities, c) for v in (p.x, p.y, p.z)
+        ]
+        _finite_values((*values, *msg.rest_lengths), "the state")
         return ns_to_seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)), msg
 
     @staticmethod
@@ -434,30 +452,34 @@ class RobotCodec:
         return np.array([[p.x, p.y, p.z] for p in points], dtype=np.float64).reshape(-1, 3)
 
     def decode_truth(self, state_raw: Raw, poses_raw: Raw) -> GroundTruth:
-        t, state = self.decode_state(state_raw)
+        t, state = self.decode_state(state_raw, self.description.n_cables)
         poses = self.deserialize(poses_raw, m.POSE_ARRAY)
         if len(poses.poses) != self.description.n_rods:
             raise MessageError(
                 f"{len(poses.poses)} rod poses; the robot has {self.description.n_rods} rods"
             )
+        quats = np.array(
+            [
+                [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
+                for p in poses.poses
+            ],
+            dtype=np.float64,
+        ).reshape(-1, 4)
+        centres = self._xyz([p.position for p in poses.poses])
+        _finite(quats, "a rod orientation")
+        _finite(centres, "a rod position")
         return GroundTruth(
             t=t,
             node_positions=self._xyz(state.node_positions),
             node_velocities=self._xyz(state.node_velocities),
-            rod_positions=self._xyz([p.position for p in poses.poses]),
-            rod_quaternions=np.array(
-                [
-                    [p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w]
-                    for p in poses.poses
-                ],
-                dtype=np.float64,
-            ),
+            rod_positions=centres,
+            rod_quaternions=quats,
             com=self._xyz([state.center_of_mass])[0],
             rest_lengths=np.asarray(state.rest_lengths, dtype=np.float64).copy(),
         )
 
     def decode_estimate(self, raw: Raw) -> Estimate:
-        t, state = self.decode_state(raw)
+        t, state = self.decode_state(raw, self.description.n_actuated)
         return Estimate(
             t=t,
             node_positions=self._xyz(state.node_positions),
@@ -485,11 +507,16 @@ class RobotCodec:
             intrinsics = np.asarray(info.k, dtype=np.float64).reshape(3, 3).copy()
         else:  # a robot without a camera: the description's nominal camera
             intrinsics = self.description.sensors.camera.intrinsics
+        pose = np.asarray(msg.camera_pose, dtype=np.float64).reshape(4, 4).copy()
+        _finite(offsets, "a UWB offset")
+        _finite(anchors, "an anchor position")
+        _finite(pose, "the camera pose")
+        _finite(intrinsics, "the camera intrinsics (k of /camera/camera_info)")
         return SensorCalibration(
             uwb_offsets=offsets.reshape(n, n).copy(),
             anchors=anchors,
             camera_intrinsics=intrinsics,
-            camera_pose=np.asarray(msg.camera_pose, dtype=np.float64).reshape(4, 4).copy(),
+            camera_pose=pose,
         )
 
     def make_imu(
@@ -523,7 +550,7 @@ def run_info_from_text(text: str) -> dict[str, Any]:
     """The run info mapping of ``/tensegrity/run_info``; a clear error if it is not one."""
     try:
         doc = yaml.safe_load(text)
-    except yaml.YAMLError as err:
+    except (yaml.YAMLError, RecursionError) as err:
         raise MessageError(f"run info is not YAML: {err}") from None
     if doc is None:
         return {}

@@ -28,6 +28,7 @@ chunk, and :attr:`BagReader.recovered` says so.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import statistics
 from collections import Counter
@@ -185,14 +186,17 @@ class _RecoveredMcap(McapReader):
 
 
 def _open_storage(path: Path) -> tuple[Any, bool]:
-    """(an open rosbags reader, whether the bag was recovered from a cut-off write)."""
-    mcaps = [path] if path.is_file() else sorted(path.glob("*.mcap"))
+    """(an open rosbags reader, whether the bag was recovered from a cut-off write).
+
+    Any failure inside rosbags (it raises many kinds on damaged bytes) becomes BagError.
+    """
+    mcaps = [path] if path.is_file() else sorted(p for p in path.glob("*.mcap") if p.is_file())
     if (path.is_dir() and (path / "metadata.yaml").exists()) or path.is_file():
-        reader: Any = Reader(path)
         try:
+            reader: Any = Reader(path)
             reader.open()
             return reader, False
-        except (ReaderError, OSError, ValueError, KeyError) as err:
+        except Exception as err:
             if len(mcaps) != 1 or not mcaps[0].name.endswith(".mcap"):
                 raise BagError(f"{path}: cannot open the bag: {err}") from None
             log.warning("%s: %s; reading what was written before the damage", path, err)
@@ -200,13 +204,16 @@ def _open_storage(path: Path) -> tuple[Any, bool]:
         raise BagError(
             f"{path}: no metadata.yaml and {len(mcaps)} .mcap files; cannot tell which to read"
         )
-    end = _mcap_data_end(mcaps[0])
+    try:
+        end = _mcap_data_end(mcaps[0])
+    except OSError as err:
+        raise BagError(f"{mcaps[0]}: cannot read: {err}") from None
     if end <= 8:
         raise BagError(f"{mcaps[0]}: not an MCAP file, or cut off before its first record")
     storage = _RecoveredMcap(mcaps[0], end)
     try:
         storage.open()
-    except (ReaderError, OSError, ValueError) as err:
+    except Exception as err:
         raise BagError(f"{mcaps[0]}: cannot recover the bag: {err}") from None
     return storage, True
 
@@ -271,10 +278,11 @@ class BagReader:
         self._storage, self.recovered = _open_storage(self.path)
         try:
             self._connections: list[Connection] = list(self._storage.connections)
+            self._check_types({t: kind for t, (kind, _) in m.FIXED_TOPICS.items()})
             header = self._read_header()
             self.description = self._description(header, description)
             self.codec = RobotCodec(self.description)
-            self._check_types()
+            self._check_types(self.codec.topics.types)
             self.run_info = self._run_info(header)
             self.calibration = self._calibration(header)
             self.control_period = self._control_period()
@@ -305,8 +313,8 @@ class BagReader:
         try:
             for conn, ns, raw in self._storage.messages(conns):
                 yield conn.topic, ns, raw
-        except (ReaderError, OSError, ValueError, EOFError) as err:
-            raise BagError(f"{self.path}: the bag is damaged: {err}") from None
+        except Exception as err:
+            raise BagError(f"{self.path}: the bag is damaged: {err!r}") from None
 
     def _read_header(self) -> dict[str, bytes]:
         found: dict[str, bytes] = {}
@@ -341,8 +349,7 @@ class BagReader:
         except Exception as err:
             raise BagError(f"{self.path}: /robot_description cannot be decoded: {err}") from None
 
-    def _check_types(self) -> None:
-        types = self.codec.topics.types
+    def _check_types(self, types: dict[str, str]) -> None:
         for conn in self._connections:
             want = types.get(conn.topic)
             if want is not None and conn.msgtype != want:
@@ -351,7 +358,7 @@ class BagReader:
                     f"topic table gives {want}"
                 )
             if want is not None and conn.msgtype.startswith("tensegrity_msgs/") and conn.digest:
-                ours = self.codec.store.hash_rihs01(conn.msgtype)
+                ours = m.typestore().hash_rihs01(conn.msgtype)
                 if conn.digest != ours:
                     raise BagError(
                         f"{self.path}: topic {conn.topic}: the bag's {conn.msgtype} is not "
@@ -382,8 +389,15 @@ class BagReader:
     def _control_period(self) -> float:
         value = self.run_info.get("control_period")
         if value is not None:
-            if not isinstance(value, (int, float)) or not value > 0:
-                raise BagError(f"{self.path}: run info control_period={value!r} is not positive")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+                or value <= 0
+            ):
+                raise BagError(
+                    f"{self.path}: run info control_period={value!r} is not a positive number"
+                )
             return float(value)
         times = []
         for _, ns, _ in self._messages({COMMAND_TOPIC}):
@@ -422,8 +436,9 @@ class BagReader:
 
     # ------------------------------------------------------------------ skips
 
-    def _skip(self, kind: str, topic: str, ns: int, why: str = "") -> None:
-        text = f"{self.path}: {topic} at t={ns_to_seconds(ns):.9f} s: {kind.replace('_', ' ')}"
+    def _skip(self, kind: str, topic: str, ns: int | None, why: str = "") -> None:
+        at = "" if ns is None else f" at t={ns_to_seconds(ns):.9f} s"
+        text = f"{self.path}: {topic}{at}: {kind.replace('_', ' ')}"
         if why:
             text += f": {why}"
         if self.strict:
@@ -439,16 +454,14 @@ class BagReader:
         """The start period, then one per command, in time order."""
         topics = self.codec.topics
         known = set(topics.types) - set(_HEADER_TOPICS)
+        self.skipped.clear()  # counts are of this pass
+        self.unknown_topics.clear()
         for conn in self._connections:
             if conn.topic not in topics.types:
                 self.unknown_topics[conn.topic] += conn.msgcount
-        if self.unknown_topics:
-            self.skipped["unknown_topic"] += sum(self.unknown_topics.values())
-            log.info(
-                "%s: skipping topics outside the topic table: %s",
-                self.path,
-                sorted(self.unknown_topics),
-            )
+        for topic, count in sorted(self.unknown_topics.items()):
+            self._skip("unknown_topic", topic, None, f"not in the topic table ({count} messages)")
+            self.skipped["unknown_topic"] += count - 1
         last_stamp: dict[str, int] = {}
         current = _Builder(command=None)
         boundary: int | None = None  # log time of the next period's command
