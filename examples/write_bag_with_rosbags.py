@@ -22,6 +22,7 @@ from hardware.bag.messages import CUSTOM_MESSAGES  # the same text as tensegrity
 from tensegrity_gym.model.description import dump_robot, load_robot
 
 CONTROL_PERIOD = 0.1  # s: one command per period
+JOINTS = "sensor_msgs/msg/JointState"
 
 
 def main(out: Path, robot: str = "three_bar") -> None:
@@ -39,6 +40,13 @@ def main(out: Path, robot: str = "three_bar") -> None:
 
     def header(ns: int, frame: str = "") -> object:
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    def rest_lengths(ns: int, values: np.ndarray) -> object:
+        """A JointState of the actuated cables' rest lengths (m), by cable name."""
+        return T[JOINTS](
+            header=header(ns), name=actuated, position=values,
+            velocity=np.empty(0), effort=np.empty(0),
+        )  # fmt: skip
 
     nodes = d.initial_positions  # (n, 3) m: the robot's pose, which a real robot measures
     anchors = d.anchors
@@ -78,32 +86,10 @@ def main(out: Path, robot: str = "three_bar") -> None:
         for step in range(50):
             t0 = round(step * CONTROL_PERIOD * 1e9)
             if step > 0:  # the command that drives the period starting at t0
-                write(
-                    "/commands/rest_length_targets",
-                    "sensor_msgs/msg/JointState",
-                    T["sensor_msgs/msg/JointState"](
-                        header=header(t0),
-                        name=actuated,
-                        position=hold,
-                        velocity=np.empty(0),
-                        effort=np.empty(0),
-                    ),
-                    t0,
-                )
+                write("/commands/rest_length_targets", JOINTS, rest_lengths(t0, hold), t0)
             for k in range(1, 11):  # encoders and AHRS at 100 Hz within the period
                 ns = t0 + k * 10_000_000
-                write(
-                    "/motors/rest_lengths",
-                    "sensor_msgs/msg/JointState",
-                    T["sensor_msgs/msg/JointState"](
-                        header=header(ns),
-                        name=actuated,
-                        position=hold,
-                        velocity=np.empty(0),
-                        effort=np.empty(0),
-                    ),
-                    ns,
-                )
+                write("/motors/rest_lengths", JOINTS, rest_lengths(ns, hold), ns)
                 for r, rod in enumerate(d.rods):
                     i, j = d.rod_nodes[r]
                     axis = (nodes[j] - nodes[i]) / np.linalg.norm(nodes[j] - nodes[i])
