@@ -200,8 +200,22 @@ def _markdown(report: dict[str, Any], training_plot: bool) -> str:
         "",
     ]
     checks = report["checks"]
-    if checks:
+    results = report["results"]
+    if checks or ("trained on oracle" in results and "trained on ukf" in results):
         lines += ["## Headline", ""]
+    if "trained on oracle" in results and "trained on ukf" in results:
+        o = results["trained on oracle"].get("ukf")
+        u = results["trained on ukf"].get("ukf")
+        o_truth = results["trained on oracle"].get("oracle")
+        if o and u and o_truth:
+            lines.append(
+                f"On UKF estimates, the policy trained on ground truth moves the CoM "
+                f"{o['progress_mean_m']:.2f} m toward the goal ("
+                f"{o_truth['progress_mean_m']:.2f} m on ground truth); the policy trained on "
+                f"UKF estimates, {u['progress_mean_m']:.2f} m. Success "
+                f"{100 * o['success_rate']:.0f} % against {100 * u['success_rate']:.0f} %."
+            )
+            lines.append("")
         for name, c in checks.items():
             lines.append(
                 f"- **{name}**, under `{c['condition']}`: {c['progress_vs_random']}x the "
