@@ -195,9 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="the main job: train PPO with the UKF in the loop (and on ground truth), "
         "evaluate, write the report",
     )
-    demo.add_argument("--timesteps", type=int, default=150_000, help="UKF training steps")
+    demo.add_argument("--timesteps", type=int, default=120_000, help="UKF training steps")
     demo.add_argument(
-        "--oracle-timesteps", type=int, default=100_000, help="ground-truth training (0: skip)"
+        "--oracle-timesteps", type=int, default=80_000, help="ground-truth training (0: skip)"
     )
     demo.add_argument("--episodes", type=int, default=5, help="evaluation episodes per row")
     demo.add_argument("--seed", type=int, default=0)

@@ -25,8 +25,8 @@ ENV_ID = "tensegrity_gym/ThreeBarRoll-v0"
 def run_main_job(
     out: Path,
     *,
-    ukf_timesteps: int = 150_000,
-    oracle_timesteps: int = 100_000,
+    ukf_timesteps: int = 120_000,
+    oracle_timesteps: int = 80_000,
     episodes: int = 5,
     seed: int = 0,
     progress_bar: bool = True,
