@@ -238,5 +238,5 @@ def test_training_is_reproducible_over_its_first_10000_steps(tmp_path: Path) -> 
         return [",".join(r) for r in rows]
 
     first, second = rewards(tmp_path / "a"), rewards(tmp_path / "b")
-    assert len(first) >= 60  # 10,240 steps of 300-step episodes over two workers
+    assert len(first) >= 30  # 10,240 steps: 34 episodes of 300 steps
     assert first == second
