@@ -218,6 +218,11 @@ def _estimate_one(
     try:
         if estimator == "oracle" and not backend.reader.has_truth:
             raise ValueError(f"{path}: estimator 'oracle' needs ground truth; the bag has none")
+        if estimator == "icp" and "/camera/depth/image_raw" not in backend.reader.topics:
+            raise ValueError(
+                f"{path}: estimator 'icp' needs RGB-D frames; the bag has none (record with "
+                "--estimator icp to record them)"
+            )
         wall = time.perf_counter()
         estimates, truths = _run_estimator(backend, estimator, seed, progress)
         wall = time.perf_counter() - wall

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
 
 __all__ = ["ESTIMATORS", "make_backend", "make_estimator", "make_roll_env"]
 
-ESTIMATORS = ("oracle", "ukf")
+ESTIMATORS = ("oracle", "ukf", "icp")
 """Estimator names ``make`` accepts; more join as they are implemented."""
 
 
@@ -38,6 +38,10 @@ def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
         from estimation.ukf import UkfEstimator
 
         return UkfEstimator()
+    if name == "icp":
+        from estimation.icp import IcpEstimator
+
+        return IcpEstimator()
     raise ValueError(f"unknown estimator {name!r}; valid choices: {list(ESTIMATORS)}")
 
 
@@ -105,6 +109,7 @@ def make_roll_env(
     Args:
         robot: a preset name, a YAML path or a loaded description.
         estimator: ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
+            ``"icp"`` (the RGB-D tracker of papers/003; renders camera frames),
             ``"oracle"`` (ground truth, simulation only) or an Estimator object.
         driver: ``None`` for the PyBullet simulation, ``"bag:PATH"`` to replay a recorded
             bag (its commands drive it; the policy's actions are ignored), or a Backend

@@ -1,0 +1,123 @@
+"""The ICP tracker behind the :class:`Estimator` protocol (``estimator="icp"``)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from estimation.icp.tracker import IcpParams, IcpTracker
+from estimation.oracle import latest_rest_lengths
+from tensegrity_gym.model.estimate import Estimate
+from tensegrity_gym.model.kinematics import center_of_mass
+from tensegrity_gym.model.samples import CableLengthSample, RgbdFrame
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.samples import Sample
+
+__all__ = ["IcpEstimator"]
+
+
+class IcpEstimator:
+    """Rod poses from the RGB-D camera and cable lengths (papers/003).
+
+    Node velocities are finite differences between frames. A period without a usable
+    frame (none, no depth, no colour) keeps the last estimate and reports unhealthy; a
+    lost track re-initialises from colour segmentation at the next frame that allows it,
+    and says so (``reinitialised``).
+    """
+
+    needs_camera = True
+
+    def __init__(self, params: IcpParams | None = None) -> None:
+        self.params = params or IcpParams()
+        self.tracker: IcpTracker | None = None
+        self._rng: np.random.Generator | None = None
+        self._nodes: NDArray[np.float64] | None = None
+        self._velocities: NDArray[np.float64] | None = None
+        self._t = 0.0
+        self._rest = np.zeros(0)
+        self._cables: NDArray[np.float64] | None = None
+        self._need_init = True
+        self.reinitialisations = 0
+
+    def _estimate(self, healthy: bool, reinitialised: bool = False) -> Estimate:
+        assert self.tracker is not None and self._nodes is not None
+        d = self.tracker.description
+        v = self._velocities if self._velocities is not None else np.zeros_like(self._nodes)
+        return Estimate(
+            t=self._t,
+            node_positions=self._nodes.copy(),
+            node_velocities=v.copy(),
+            com=center_of_mass(self._nodes, d.node_masses),
+            rest_lengths=self._rest.copy(),
+            healthy=healthy,
+            reinitialised=reinitialised,
+        )
+
+    def reset(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+        command: NDArray[np.float64],
+        rng: np.random.Generator,
+    ) -> Estimate:
+        self.tracker = IcpTracker(description, calibration, self.params)
+        self._rng = rng
+        self._rest = latest_rest_lengths(samples, np.asarray(command, dtype=np.float64))
+        self._cables = None
+        self._nodes = description.initial_positions.copy()
+        self._velocities = None
+        self._need_init = True
+        self.reinitialisations = 0
+        healthy = self._consume(samples)
+        return self._estimate(healthy)
+
+    def _consume(self, samples: Sequence[Sample]) -> bool:
+        """Take the period's samples; True if a frame was tracked (or initialised)."""
+        assert self.tracker is not None and self._rng is not None
+        tracked = False
+        for s in samples:
+            if isinstance(s, CableLengthSample):
+                self._cables = s.lengths
+            elif isinstance(s, RgbdFrame):
+                tracked = self._frame(s) or tracked
+        return tracked
+
+    def _frame(self, frame: RgbdFrame) -> bool:
+        assert self.tracker is not None and self._rng is not None and self._nodes is not None
+        if not np.any(frame.depth > 0):
+            return False
+        before, t_before = self._nodes.copy(), self._t
+        if self._need_init:
+            if not self.tracker.initialise(frame, self._cables, self._rng):
+                return False
+            self._need_init = False
+            assert self.tracker.nodes is not None
+            self._nodes, self._t, self._velocities = self.tracker.nodes.copy(), frame.t, None
+            return True
+        result = self.tracker.track(frame, self._cables, self._rng)
+        if result.lost:
+            self._need_init = True
+            self.reinitialisations += 1
+            return False
+        self._nodes = result.nodes.copy()
+        dt = frame.t - t_before
+        self._velocities = (self._nodes - before) / dt if dt > 0 else None
+        self._t = frame.t
+        return True
+
+    def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
+        if self.tracker is None:
+            raise RuntimeError("call reset() before update()")
+        self._rest = latest_rest_lengths(samples, self._rest)
+        was_lost = self._need_init and self.reinitialisations > 0
+        healthy = self._consume(samples)
+        return self._estimate(healthy, reinitialised=was_lost and healthy)

@@ -1,0 +1,116 @@
+"""From an RGB-D frame to coloured 3-D points: endcap segmentation by hue, back-projection,
+the depth noise filtering of papers/003 section 4.5, and the ground plane by RANSAC."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+
+__all__ = ["HueRange", "back_project", "endcap_masks", "fit_ground_plane", "hsv", "rod_hues"]
+
+
+@dataclass(frozen=True)
+class HueRange:
+    """A colour class: hue within ``width`` degrees of ``hue``, saturation and value above
+    their floors (the HSV range of papers/003 section 4.1)."""
+
+    hue: float
+    """Degrees, [0, 360)."""
+    width: float = 25.0
+    min_saturation: float = 0.4
+    min_value: float = 0.15
+
+
+def hsv(rgb: NDArray[np.uint8]) -> NDArray[np.float64]:
+    """(H, W, 3) RGB to HSV with hue in degrees and saturation, value in [0, 1]."""
+    x = rgb.astype(np.float64) / 255.0
+    r, g, b = x[..., 0], x[..., 1], x[..., 2]
+    v = x.max(axis=-1)
+    c = v - x.min(axis=-1)
+    s = np.where(v > 0, c / np.where(v > 0, v, 1.0), 0.0)
+    safe = np.where(c > 0, c, 1.0)
+    h = np.where(
+        v == r, ((g - b) / safe) % 6.0, np.where(v == g, (b - r) / safe + 2.0, (r - g) / safe + 4.0)
+    )
+    h = np.where(c > 0, 60.0 * h, 0.0)
+    return np.stack([h, s, v], axis=-1)
+
+
+def rod_hues(description: RobotDescription) -> list[HueRange]:
+    """One hue range per rod, from the colour its endcaps are painted."""
+    out = []
+    for rod in description.rods:
+        rgb = np.array([[np.clip(np.array(rod.color[:3]) * 255.0, 0, 255)]], dtype=np.uint8)
+        out.append(HueRange(float(hsv(rgb)[0, 0, 0])))
+    return out
+
+
+def endcap_masks(
+    rgb: NDArray[np.uint8], hues: list[HueRange], roi: tuple[int, int, int, int] | None = None
+) -> NDArray[np.bool_]:
+    """(R, H, W) pixels of each rod's colour; ``roi`` (row0, row1, col0, col1) limits the
+    search (papers/003 draws one by hand; by default the whole image is searched)."""
+    x = hsv(rgb)
+    masks = np.zeros((len(hues), *rgb.shape[:2]), dtype=np.bool_)
+    for k, c in enumerate(hues):
+        dh = np.abs(x[..., 0] - c.hue)
+        dh = np.minimum(dh, 360.0 - dh)
+        masks[k] = (dh <= c.width) & (x[..., 1] >= c.min_saturation) & (x[..., 2] >= c.min_value)
+    if roi is not None:
+        r0, r1, c0, c1 = roi
+        keep = np.zeros(rgb.shape[:2], dtype=np.bool_)
+        keep[r0:r1, c0:c1] = True
+        masks &= keep
+    return masks
+
+
+def back_project(
+    depth: NDArray[np.float32],
+    intrinsics: NDArray[np.float64],
+    camera_pose: NDArray[np.float64],
+    mask: NDArray[np.bool_],
+) -> NDArray[np.float64]:
+    """World points (k, 3) of the masked pixels that have a depth return (depth > 0)."""
+    v, u = np.nonzero(mask & (depth > 0))
+    z = depth[v, u].astype(np.float64)
+    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
+    cam = np.stack([(u + 0.5 - cx) / fx * z, (v + 0.5 - cy) / fy * z, z], axis=-1)
+    return np.asarray(cam @ camera_pose[:3, :3].T + camera_pose[:3, 3])
+
+
+def fit_ground_plane(
+    points: NDArray[np.float64],
+    rng: np.random.Generator,
+    iterations: int = 200,
+    tolerance: float = 0.01,
+) -> tuple[NDArray[np.float64], float]:
+    """RANSAC plane (unit normal n (3,), offset d with n.x + d = 0) through most points
+    (k, 3), refined by least squares on its inliers; the normal points up (+z)."""
+    if len(points) < 3:
+        raise ValueError(f"{len(points)} points cannot fix a plane")
+    best, best_count = None, -1
+    for _ in range(iterations):
+        a, b, c = points[rng.choice(len(points), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-9:
+            continue
+        n /= norm
+        count = int(np.sum(np.abs(points @ n - n @ a) < tolerance))
+        if count > best_count:
+            best, best_count = (n, -float(n @ a)), count
+    if best is None:
+        raise ValueError("the points are collinear: no plane")
+    n, d = best
+    inliers = points[np.abs(points @ n + d) < tolerance]
+    centre = inliers.mean(axis=0)
+    _, _, vt = np.linalg.svd(inliers - centre)
+    n = vt[-1] if vt[-1][2] >= 0 else -vt[-1]
+    return n, -float(n @ centre)

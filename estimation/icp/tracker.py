@@ -1,0 +1,487 @@
+"""The ICP tracker of papers/003 (Lu et al.): rod poses from an overhead RGB-D camera
+and the cable-length sensors, each frame a few iterations of a transition step (per-rod
+weighted ICP of endcap model points against the rod's coloured points) and a correction
+step (eq. 2: endcap positions near the transition's, cable lengths near the measured
+ones, under the rod-length, rod-rod and ground constraints of section 4.3).
+
+The state is the endcap (node) centres, (n, 3); a rod's pose follows from its two
+endcaps (rods are symmetric about their axis).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import product
+from typing import TYPE_CHECKING, TypeAlias
+
+import numpy as np
+from scipy.optimize import minimize
+from scipy.spatial import cKDTree
+
+from estimation.icp.observation import back_project, endcap_masks, fit_ground_plane, rod_hues
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.samples import RgbdFrame
+
+__all__ = ["IcpParams", "IcpTracker", "TrackResult", "weighted_kabsch"]
+
+Vec: TypeAlias = "NDArray[np.float64]"
+
+
+@dataclass(frozen=True)
+class IcpParams:
+    """Tracker settings; defaults from papers/003 where it gives them."""
+
+    max_iterations: int = 6
+    """Transition + correction rounds per frame (section 4.2)."""
+    d_max_first: float = 0.06
+    """Correspondence distance (m) of the first iteration; it shrinks linearly..."""
+    d_max_last: float = 0.015
+    """...to this one in the last."""
+    dummy_points: int = 10
+    """Point pairs carried over from the previous frame per rod (section 4.2). The paper
+    takes 50 at 640x480; at 320x240 an endcap shows about 15 points, and 50 dummies
+    outweighed them (the rod lagged a roll by several cm and lost track; 10 did not)."""
+    dummy_weight: float = 0.5
+    model_points: int = 120
+    """Points sampled on each endcap sphere."""
+    correction: bool = True
+    rod_rod_constraint: bool = True
+    ground_constraint: bool = True
+    adaptive_weights: bool = True
+    """Section 4.4; off: unary weight 1 and binary weight 0.25 throughout."""
+    noise_filter: bool = True
+    """Section 4.5: drop an endcap's points deeper than its nearest plus its radius."""
+    min_fitness: float = 0.03
+    """Mean share of visible model points matched under which the track is lost."""
+    max_speed: float = 3.0
+    """Endcap speed (m/s) beyond which a jump is not physical: the track is lost."""
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if not 0 < self.d_max_last <= self.d_max_first:
+            raise ValueError("need 0 < d_max_last <= d_max_first")
+        if self.dummy_points < 0 or self.model_points < 8:
+            raise ValueError("dummy_points must be >= 0 and model_points >= 8")
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    nodes: NDArray[np.float64]
+    """Endcap centres (n, 3), metres, world frame."""
+    fitness: NDArray[np.float64]
+    """Per endcap, the share of its visible model points that found a match, (n,)."""
+    lost: bool
+    reason: str = ""
+
+
+def weighted_kabsch(
+    source: NDArray[np.float64], target: NDArray[np.float64], weights: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """R (3, 3), t (3,) minimising sum w |R source + t - target|^2; (k, 3) point pairs."""
+    w = weights / weights.sum()
+    mu_s, mu_t = w @ source, w @ target
+    cov = ((target - mu_t) * w[:, None]).T @ (source - mu_s)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    return R, mu_t - R @ mu_s
+
+
+def _sphere_points(n: int) -> NDArray[np.float64]:
+    """n nearly even unit vectors (Fibonacci sphere), (n, 3)."""
+    k = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * k / n
+    phi = np.pi * (1.0 + 5**0.5) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
+def _closest_parameters(
+    a0: NDArray[np.float64],
+    a1: NDArray[np.float64],
+    b0: NDArray[np.float64],
+    b1: NDArray[np.float64],
+) -> tuple[float, float]:
+    """Parameters (s, u) in [0, 1] of the closest points of segments a and b."""
+    d1, d2, r = a1 - a0, b1 - b0, a0 - b0
+    a, e, f = float(d1 @ d1), float(d2 @ d2), float(d2 @ r)
+    c, b = float(d1 @ r), float(d1 @ d2)
+    denom = a * e - b * b
+    s = float(np.clip((b * f - c * e) / denom, 0.0, 1.0)) if denom > 1e-12 else 0.0
+    u = (b * s + f) / e
+    if u < 0.0:
+        u, s = 0.0, float(np.clip(-c / a, 0.0, 1.0))
+    elif u > 1.0:
+        u, s = 1.0, float(np.clip((b - c) / a, 0.0, 1.0))
+    return s, float(u)
+
+
+class IcpTracker:
+    """Tracks one robot's endcaps frame by frame (see the module docstring).
+
+    Args:
+        description: rods (lengths, radii, colours), cables.
+        calibration: camera intrinsics and pose.
+        params: settings.
+    """
+
+    def __init__(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        params: IcpParams | None = None,
+    ) -> None:
+        d = description
+        self.description = d
+        self.calibration = calibration
+        self.params = params or IcpParams()
+        self.hues = rod_hues(d)
+        self.rod_nodes = d.rod_nodes
+        self.radius = np.array([r.endcap_radius for r in d.rods])
+        self.rod_diameter = 2.0 * max(r.radius for r in d.rods)
+        x0 = d.initial_positions
+        self.node_spacing = np.linalg.norm(x0[d.rod_nodes[:, 1]] - x0[d.rod_nodes[:, 0]], axis=1)
+        self.sphere = _sphere_points(self.params.model_points)
+        self.camera = np.asarray(calibration.camera_pose)[:3, 3]
+        self.nodes: NDArray[np.float64] | None = None
+        self.ground: tuple[NDArray[np.float64], float] = (np.array([0.0, 0.0, 1.0]), 0.0)
+        self._dummies: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        self._t: float | None = None
+
+    # ------------------------------------------------------------------ observation
+
+    def observe(self, frame: RgbdFrame) -> list[NDArray[np.float64]]:
+        """Each rod's coloured points in the world frame, [(k_r, 3)]."""
+        masks = endcap_masks(frame.rgb, self.hues)
+        K, pose = self.calibration.camera_intrinsics, self.calibration.camera_pose
+        return [back_project(frame.depth, K, pose, m) for m in masks]
+
+    # ------------------------------------------------------------------ initialisation
+
+    def initialise(
+        self,
+        frame: RgbdFrame,
+        cable_lengths: NDArray[np.float64] | None,
+        rng: np.random.Generator,
+    ) -> bool:
+        """Endcaps from colour segmentation of the whole frame (section 4.1), the ground by
+        RANSAC; which endcap is which node is chosen by the cable lengths. False if a rod
+        is not seen."""
+        points = self.observe(frame)
+        d = self.description
+        nodes = np.zeros((d.n_nodes, 3))
+        for k, (i, j) in enumerate(self.rod_nodes):
+            p = points[k]
+            if len(p) < 4:
+                return False
+            a, b = self._two_clusters(p)
+            mid, axis = 0.5 * (a + b), b - a
+            norm = np.linalg.norm(axis)
+            if norm < 1e-6:
+                return False
+            half = 0.5 * self.node_spacing[k] * axis / norm
+            nodes[i], nodes[j] = mid - half, mid + half
+        nodes = self._choose_ends(nodes, cable_lengths)
+        background = np.asarray(~endcap_masks(frame.rgb, self.hues).any(axis=0))
+        K, pose = self.calibration.camera_intrinsics, self.calibration.camera_pose
+        floor = back_project(frame.depth, K, pose, background)
+        if len(floor) > 100:
+            floor = floor[rng.choice(len(floor), min(len(floor), 3000), replace=False)]
+            try:
+                self.ground = fit_ground_plane(floor, rng)
+            except ValueError:
+                pass
+        self.nodes = nodes
+        self._dummies = [(np.zeros((0, 3)), np.zeros((0, 3))) for _ in self.rod_nodes]
+        self._t = None  # the refinement below is not a motion: no jump test
+        self.track(frame, cable_lengths, rng)
+        self._t = frame.t
+        return True
+
+    @staticmethod
+    def _two_clusters(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Centroids of a 2-means split, started from the two farthest-apart points."""
+        a = p[np.argmax(np.linalg.norm(p - p.mean(axis=0), axis=1))]
+        b = p[np.argmax(np.linalg.norm(p - a, axis=1))]
+        for _ in range(10):
+            near_a = np.linalg.norm(p - a, axis=1) <= np.linalg.norm(p - b, axis=1)
+            if near_a.all() or not near_a.any():
+                break
+            a, b = p[near_a].mean(axis=0), p[~near_a].mean(axis=0)
+        return a, b
+
+    def _choose_ends(
+        self, nodes: NDArray[np.float64], cable_lengths: NDArray[np.float64] | None
+    ) -> NDArray[np.float64]:
+        """Swap rods' ends to fit the measured cable lengths (the rest lengths without)."""
+        d = self.description
+        lengths = cable_lengths if cable_lengths is not None else d.rest_lengths
+        cables = d.cable_nodes
+        best, best_cost = nodes, np.inf
+        for flips in product((False, True), repeat=d.n_rods):
+            x = nodes.copy()
+            for k, flip in enumerate(flips):
+                if flip:
+                    i, j = self.rod_nodes[k]
+                    x[[i, j]] = x[[j, i]]
+            cost = float(
+                np.sum((np.linalg.norm(x[cables[:, 0]] - x[cables[:, 1]], axis=1) - lengths) ** 2)
+            )
+            if cost < best_cost:
+                best, best_cost = x, cost
+        return best
+
+    # ------------------------------------------------------------------ tracking
+
+    def track(
+        self,
+        frame: RgbdFrame,
+        cable_lengths: NDArray[np.float64] | None,
+        rng: np.random.Generator,
+    ) -> TrackResult:
+        """One frame: up to ``max_iterations`` transition and correction steps."""
+        if self.nodes is None:
+            raise RuntimeError("initialise() before track()")
+        p = self.params
+        previous = self.nodes.copy()
+        points = self.observe(frame)
+        trees = [cKDTree(pts) if len(pts) else None for pts in points]
+        nodes = previous.copy()
+        ratio = np.zeros(len(nodes))
+        matches: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        for it in range(p.max_iterations):
+            share = it / max(p.max_iterations - 1, 1)
+            d_max = p.d_max_first + share * (p.d_max_last - p.d_max_first)
+            matches = []
+            for k in range(len(self.rod_nodes)):
+                nodes, r, pair = self._transition(k, nodes, points[k], trees[k], d_max, rng)
+                i, j = self.rod_nodes[k]
+                ratio[i], ratio[j] = r
+                matches.append(pair)
+            if p.correction:
+                nodes = self._correct(nodes, previous, ratio, cable_lengths)
+        nodes = self._keep_ends(nodes, previous)
+        dt = max(frame.t - self._t, 1e-3) if self._t is not None else 1.0
+        jump = float(np.linalg.norm(nodes - previous, axis=1).max())
+        fitness = float(ratio.mean())
+        lost, reason = False, ""
+        if not np.all(np.isfinite(nodes)):
+            lost, reason = True, "non-finite endcap positions"
+        elif fitness < p.min_fitness:
+            lost, reason = True, f"fitness {fitness:.3f} below {p.min_fitness}"
+        elif jump > p.max_speed * dt:
+            lost, reason = True, f"an endcap jumped {jump:.2f} m in {dt:.2f} s"
+        if not lost:
+            self.nodes = nodes
+            self._dummies = matches
+            self._t = frame.t
+        return TrackResult(nodes if not lost else previous, ratio, lost, reason)
+
+    def _keep_ends(self, nodes: Vec, previous: Vec) -> Vec:
+        """A rod's two endcaps look alike: where ICP turned a rod end for end, swap them
+        back, each endcap being the one nearer its previous position."""
+        out = nodes.copy()
+        for i, j in self.rod_nodes:
+            kept = np.linalg.norm(nodes[i] - previous[i]) + np.linalg.norm(nodes[j] - previous[j])
+            swapped = np.linalg.norm(nodes[i] - previous[j])
+            swapped += np.linalg.norm(nodes[j] - previous[i])
+            if swapped < kept:
+                out[[i, j]] = nodes[[j, i]]
+        return out
+
+    def _rod_frame(
+        self, a: NDArray[np.float64], b: NDArray[np.float64]
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """A rotation (3, 3) with z along a -> b, and the midpoint: a rod's frame."""
+        z = (b - a) / np.linalg.norm(b - a)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        x = np.cross(helper, z)
+        x /= np.linalg.norm(x)
+        return np.stack([x, np.cross(z, x), z], axis=1), 0.5 * (a + b)
+
+    def _transition(
+        self,
+        k: int,
+        nodes: NDArray[np.float64],
+        observed: NDArray[np.float64],
+        tree: cKDTree | None,
+        d_max: float,
+        rng: np.random.Generator,
+    ) -> tuple[
+        NDArray[np.float64],
+        tuple[float, float],
+        tuple[NDArray[np.float64], NDArray[np.float64]],
+    ]:
+        """Per-rod ICP step; returns the moved nodes, each endcap's match ratio, and the
+        matched pairs (model points in the rod frame, observed points) for the next frame."""
+        p = self.params
+        i, j = self.rod_nodes[k]
+        radius = self.radius[k]
+        rot, centre = self._rod_frame(nodes[i], nodes[j])
+        src, dst, w, local = [], [], [], []
+        ratios = []
+        for e in (i, j):
+            model = nodes[e] + radius * self.sphere
+            visible = (model - nodes[e]) @ (self.camera - nodes[e]) > 0.0  # hidden points
+            model = model[visible]
+            matched = 0
+            if tree is not None and len(model):
+                dist, idx = tree.query(model, distance_upper_bound=d_max)
+                ok = np.isfinite(dist)
+                if p.noise_filter and ok.any():
+                    depth = np.linalg.norm(observed[idx[ok]] - self.camera, axis=1)
+                    keep = depth <= depth.min() + 2.0 * radius
+                    ok[np.flatnonzero(ok)[~keep]] = False
+                matched = int(ok.sum())
+                src.append(model[ok])
+                dst.append(observed[idx[ok]])
+                w.append(1.0 - (dist[ok] / d_max) ** 2)
+                local.append((model[ok] - centre) @ rot)
+            ratios.append(matched / max(len(model), 1))
+        prev_local, prev_obs = self._dummies[k]
+        if len(prev_local) and p.dummy_points:
+            pick = rng.choice(len(prev_local), min(p.dummy_points, len(prev_local)), replace=False)
+            src.append(prev_local[pick] @ rot.T + centre)
+            dst.append(prev_obs[pick])
+            w.append(np.full(len(pick), p.dummy_weight))
+        pair = (
+            np.concatenate(local) if local else np.zeros((0, 3)),
+            np.concatenate(dst[: len(local)]) if local else np.zeros((0, 3)),
+        )
+        if src and sum(len(s) for s in src) >= 3:
+            S, D, W = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
+            if W.sum() > 0:
+                R, t = weighted_kabsch(S, D, W)
+                nodes = nodes.copy()
+                nodes[[i, j]] = nodes[[i, j]] @ R.T + t
+        return nodes, (ratios[0], ratios[1]), pair
+
+    # ------------------------------------------------------------------ correction
+
+    def _correct(
+        self,
+        hat: NDArray[np.float64],
+        previous: NDArray[np.float64],
+        ratio: NDArray[np.float64],
+        cable_lengths: NDArray[np.float64] | None,
+    ) -> NDArray[np.float64]:
+        """Eq. 2 by SLSQP, with the constraints of section 4.3."""
+        p = self.params
+        d = self.description
+        n = len(hat)
+        w_unary = np.maximum(ratio, 0.1) if p.adaptive_weights else np.ones(n)
+        cables = d.cable_nodes
+        if cable_lengths is not None:
+            ri, rj = ratio[cables[:, 0]], ratio[cables[:, 1]]
+            if p.adaptive_weights:
+                w_bin = np.where(
+                    (ri > 0.5) & (rj > 0.5),
+                    0.0,
+                    np.where((ri < 0.2) | (rj < 0.2), 0.25, 0.25 * (1.0 - 0.5 * (ri + rj))),
+                )
+            else:
+                w_bin = np.full(len(cables), 0.25)
+        else:
+            w_bin = np.zeros(len(cables))
+        lengths = cable_lengths if cable_lengths is not None else np.zeros(len(cables))
+        ci, cj = cables[:, 0], cables[:, 1]
+
+        def objective(v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+            q = v.reshape(n, 3)
+            diff = q - hat
+            vec = q[ci] - q[cj]
+            dist = np.linalg.norm(vec, axis=1)
+            res = dist - lengths
+            value = float(np.sum(w_unary * np.sum(diff**2, axis=1)) + np.sum(w_bin * res**2))
+            grad = 2.0 * w_unary[:, None] * diff
+            g = (2.0 * w_bin * res / np.maximum(dist, 1e-9))[:, None] * vec
+            np.add.at(grad, ci, g)
+            np.add.at(grad, cj, -g)
+            return value, grad.ravel()
+
+        constraints = []
+        for k, (i, j) in enumerate(self.rod_nodes):
+            L = self.node_spacing[k]
+
+            def rod_length(v: NDArray[np.float64], i: int = i, j: int = j, L: float = L) -> float:
+                q = v.reshape(n, 3)
+                return float(np.sum((q[j] - q[i]) ** 2) - L * L)
+
+            def rod_length_jac(
+                v: NDArray[np.float64], i: int = i, j: int = j
+            ) -> NDArray[np.float64]:
+                q = v.reshape(n, 3)
+                g = np.zeros((n, 3))
+                g[j], g[i] = 2.0 * (q[j] - q[i]), -2.0 * (q[j] - q[i])
+                return g.ravel()
+
+            constraints.append({"type": "eq", "fun": rod_length, "jac": rod_length_jac})
+        if p.ground_constraint:
+            normal, offset = self.ground
+            floor = np.array([self.radius[self._rod_of(e)] for e in range(n)])
+            jac = np.zeros((n, n * 3))
+            for e in range(n):
+                jac[e, 3 * e : 3 * e + 3] = normal
+            constraints.append(
+                {
+                    "type": "ineq",
+                    "fun": lambda v: v.reshape(n, 3) @ normal + offset - floor,
+                    "jac": lambda v: jac,
+                }
+            )
+        if p.rod_rod_constraint:
+            constraints += self._rod_rod_constraints(previous, n)
+        result = minimize(
+            objective,
+            hat.ravel(),
+            jac=True,
+            method="SLSQP",
+            constraints=constraints,
+            options={"maxiter": 50, "ftol": 1e-10},
+        )
+        out = result.x.reshape(n, 3)
+        return out if np.all(np.isfinite(out)) else hat
+
+    def _rod_of(self, node: int) -> int:
+        return int(np.flatnonzero((self.rod_nodes == node).any(axis=1))[0])
+
+    def _rod_rod_constraints(
+        self, previous: NDArray[np.float64], n: int
+    ) -> list[dict[str, object]]:
+        """Constraint (c): linearised at the previous frame's closest points, for pairs
+        whose closest points are not rod ends."""
+        out: list[dict[str, object]] = []
+        rods = self.rod_nodes
+        for a in range(len(rods)):
+            for b in range(a + 1, len(rods)):
+                (a0, a1), (b0, b1) = rods[a], rods[b]
+                s, u = _closest_parameters(previous[a0], previous[a1], previous[b0], previous[b1])
+                if s in (0.0, 1.0) or u in (0.0, 1.0):
+                    continue
+                ca = previous[a0] + s * (previous[a1] - previous[a0])
+                cb = previous[b0] + u * (previous[b1] - previous[b0])
+                gap = cb - ca
+                norm = np.linalg.norm(gap)
+                if norm < 1e-9:
+                    continue
+                direction = gap / norm
+                jac = np.zeros((n, 3))
+                jac[a0], jac[a1] = -(1 - s) * direction, -s * direction
+                jac[b0], jac[b1] = (1 - u) * direction, u * direction
+                flat = jac.ravel()
+                out.append(
+                    {
+                        "type": "ineq",
+                        "fun": lambda v, flat=flat: float(flat @ v) - self.rod_diameter,
+                        "jac": lambda v, flat=flat: flat,
+                    }
+                )
+        return out
