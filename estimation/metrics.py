@@ -22,6 +22,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tensegrity_gym.model.kinematics import weighted_kabsch
+
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
@@ -137,14 +139,7 @@ def umeyama_alignment(
 
     Umeyama (1991), without scale; source and target (T, 3).
     """
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    cov = (target - mu_t).T @ (source - mu_s) / len(source)
-    U, _, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    return R, mu_t - R @ mu_s
+    return weighted_kabsch(source, target, np.ones(len(source)))
 
 
 def absolute_trajectory_error(

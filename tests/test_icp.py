@@ -10,10 +10,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import tensegrity_gym  # noqa: F401
-from estimation.icp import IcpEstimator, IcpParams, weighted_kabsch
+from estimation.icp import IcpEstimator, IcpParams
 from estimation.icp.observation import back_project, endcap_masks, fit_ground_plane, rod_hues
 from estimation.metrics import rod_errors
 from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.model.kinematics import weighted_kabsch
 from tensegrity_gym.model.samples import RgbdFrame
 from tensegrity_gym.sim.backend import SimBackend
 from tensegrity_gym.tasks.gaits import FaceGait

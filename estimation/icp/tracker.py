@@ -19,6 +19,7 @@ from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
 from estimation.icp.observation import back_project, endcap_masks, fit_ground_plane, rod_hues
+from tensegrity_gym.model.kinematics import weighted_kabsch
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -27,7 +28,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import RgbdFrame
 
-__all__ = ["IcpParams", "IcpTracker", "TrackResult", "weighted_kabsch"]
+__all__ = ["IcpParams", "IcpTracker", "TrackResult"]
 
 Vec: TypeAlias = "NDArray[np.float64]"
 
@@ -78,21 +79,6 @@ class TrackResult:
     """Per endcap, the share of its visible model points that found a match, (n,)."""
     lost: bool
     reason: str = ""
-
-
-def weighted_kabsch(
-    source: NDArray[np.float64], target: NDArray[np.float64], weights: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """R (3, 3), t (3,) minimising sum w |R source + t - target|^2; (k, 3) point pairs."""
-    w = weights / weights.sum()
-    mu_s, mu_t = w @ source, w @ target
-    cov = ((target - mu_t) * w[:, None]).T @ (source - mu_s)
-    U, _, Vt = np.linalg.svd(cov)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    return R, mu_t - R @ mu_s
 
 
 def _sphere_points(n: int) -> NDArray[np.float64]:

@@ -19,6 +19,7 @@ __all__ = [
     "rod_axes",
     "rod_centres",
     "rod_quaternion_from_axis",
+    "weighted_kabsch",
 ]
 
 
@@ -89,3 +90,18 @@ def rod_quaternion_from_axis(axis: NDArray[np.float64]) -> NDArray[np.float64]:
     flip = w[..., 0] < 1e-9
     q[flip] = np.array([1.0, 0.0, 0.0, 0.0])
     return np.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True))
+
+
+def weighted_kabsch(
+    source: NDArray[np.float64], target: NDArray[np.float64], weights: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """R (3, 3), t (3,) minimising sum w |R source + t - target|^2; (k, 3) point pairs."""
+    w = weights / weights.sum()
+    mu_s, mu_t = w @ source, w @ target
+    cov = ((target - mu_t) * w[:, None]).T @ (source - mu_s)
+    U, _, Vt = np.linalg.svd(cov)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    return R, mu_t - R @ mu_s
