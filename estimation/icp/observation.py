@@ -56,18 +56,30 @@ def endcap_masks(
     rgb: NDArray[np.uint8], hues: list[HueRange], roi: tuple[int, int, int, int] | None = None
 ) -> NDArray[np.bool_]:
     """(R, H, W) pixels of each rod's colour; ``roi`` (row0, row1, col0, col1) limits the
-    search (papers/003 draws one by hand; by default the whole image is searched)."""
-    x = hsv(rgb)
+    search (papers/003 draws one by hand; by default the whole image is searched).
+
+    Hue is computed only for the few pixels saturated and bright enough for any class.
+    """
     masks = np.zeros((len(hues), *rgb.shape[:2]), dtype=np.bool_)
-    for k, c in enumerate(hues):
-        dh = np.abs(x[..., 0] - c.hue)
-        dh = np.minimum(dh, 360.0 - dh)
-        masks[k] = (dh <= c.width) & (x[..., 1] >= c.min_saturation) & (x[..., 2] >= c.min_value)
+    if not hues:
+        return masks
+    top = rgb.max(axis=-1).astype(np.int16)
+    chroma = top - rgb.min(axis=-1)
+    s_min = min(c.min_saturation for c in hues)
+    v_min = min(c.min_value for c in hues)
+    rows, cols = np.nonzero((chroma >= s_min * top) & (top >= v_min * 255.0) & (chroma > 0))
     if roi is not None:
         r0, r1, c0, c1 = roi
-        keep = np.zeros(rgb.shape[:2], dtype=np.bool_)
-        keep[r0:r1, c0:c1] = True
-        masks &= keep
+        inside = (rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1)
+        rows, cols = rows[inside], cols[inside]
+    if not len(rows):
+        return masks
+    x = hsv(rgb[rows, cols][None])[0]
+    for k, c in enumerate(hues):
+        dh = np.abs(x[:, 0] - c.hue)
+        dh = np.minimum(dh, 360.0 - dh)
+        keep = (dh <= c.width) & (x[:, 1] >= c.min_saturation) & (x[:, 2] >= c.min_value)
+        masks[k, rows[keep], cols[keep]] = True
     return masks
 
 

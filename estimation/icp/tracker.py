@@ -50,6 +50,14 @@ class IcpParams:
     dummy_weight: float = 0.5
     model_points: int = 120
     """Points sampled on each endcap sphere."""
+    interleaved: bool = True
+    """Correct after every transition (the proposed method); False: transitions first,
+    one correction at the end (papers/003 baseline 3)."""
+    rigid_shape: bool = False
+    """Baseline 2 of papers/003: the shape from the cable lengths alone, then registered
+    to the points as one rigid body; no correction step."""
+    converged: float = 2e-4
+    """An iteration that moves no endcap further than this (m) ends the frame's loop."""
     correction: bool = True
     rod_rod_constraint: bool = True
     ground_constraint: bool = True
@@ -241,19 +249,36 @@ class IcpTracker:
         points = self.observe(frame)
         trees = [cKDTree(pts) if len(pts) else None for pts in points]
         nodes = previous.copy()
+        if p.rigid_shape and cable_lengths is not None:
+            nodes = self._shape_from_cables(previous, cable_lengths)
         ratio = np.zeros(len(nodes))
         matches: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
+        before = nodes.copy()
         for it in range(p.max_iterations):
             share = it / max(p.max_iterations - 1, 1)
             d_max = p.d_max_first + share * (p.d_max_last - p.d_max_first)
             matches = []
+            pairs = []
             for k in range(len(self.rod_nodes)):
-                nodes, r, pair = self._transition(k, nodes, points[k], trees[k], d_max, rng)
+                S, D, W, r, pair = self._correspond(k, nodes, points[k], trees[k], d_max, rng)
                 i, j = self.rod_nodes[k]
                 ratio[i], ratio[j] = r
                 matches.append(pair)
-            if p.correction:
+                if p.rigid_shape:
+                    pairs.append((S, D, W))
+                else:
+                    nodes = self._move(nodes, [i, j], S, D, W)
+            if p.rigid_shape and pairs:
+                S, D, W = (np.concatenate(x) for x in zip(*pairs, strict=True))
+                nodes = self._move(nodes, list(range(len(nodes))), S, D, W)
+            elif p.correction and p.interleaved:
                 nodes = self._correct(nodes, previous, ratio, cable_lengths)
+            moved = float(np.abs(nodes - before).max()) if it else np.inf
+            before = nodes.copy()
+            if moved < p.converged:  # section 4.2: until convergence or max_iterations
+                break
+        if p.correction and not p.interleaved and not p.rigid_shape:
+            nodes = self._correct(nodes, previous, ratio, cable_lengths)
         nodes = self._keep_ends(nodes, previous)
         dt = max(frame.t - self._t, 1e-3) if self._t is not None else 1.0
         jump = float(np.linalg.norm(nodes - previous, axis=1).max())
@@ -293,21 +318,19 @@ class IcpTracker:
         x /= np.linalg.norm(x)
         return np.stack([x, np.cross(z, x), z], axis=1), 0.5 * (a + b)
 
-    def _transition(
+    def _correspond(
         self,
         k: int,
-        nodes: NDArray[np.float64],
-        observed: NDArray[np.float64],
+        nodes: Vec,
+        observed: Vec,
         tree: cKDTree | None,
         d_max: float,
         rng: np.random.Generator,
-    ) -> tuple[
-        NDArray[np.float64],
-        tuple[float, float],
-        tuple[NDArray[np.float64], NDArray[np.float64]],
-    ]:
-        """Per-rod ICP step; returns the moved nodes, each endcap's match ratio, and the
-        matched pairs (model points in the rod frame, observed points) for the next frame."""
+    ) -> tuple[Vec, Vec, Vec, tuple[float, float], tuple[Vec, Vec]]:
+        """Rod k's point pairs for registration: model points (k, 3), their matches (k, 3)
+        and weights (k,), eq. 1, with the dummy pairs of the previous frame; each endcap's
+        match ratio; and the matched pairs (model points in the rod frame, observed points)
+        kept for the next frame."""
         p = self.params
         i, j = self.rod_nodes[k]
         radius = self.radius[k]
@@ -332,23 +355,44 @@ class IcpTracker:
                 w.append(1.0 - (dist[ok] / d_max) ** 2)
                 local.append((model[ok] - centre) @ rot)
             ratios.append(matched / max(len(model), 1))
+        pair = (
+            np.concatenate(local) if local else np.zeros((0, 3)),
+            np.concatenate(dst) if dst else np.zeros((0, 3)),
+        )
         prev_local, prev_obs = self._dummies[k]
         if len(prev_local) and p.dummy_points:
             pick = rng.choice(len(prev_local), min(p.dummy_points, len(prev_local)), replace=False)
             src.append(prev_local[pick] @ rot.T + centre)
             dst.append(prev_obs[pick])
             w.append(np.full(len(pick), p.dummy_weight))
-        pair = (
-            np.concatenate(local) if local else np.zeros((0, 3)),
-            np.concatenate(dst[: len(local)]) if local else np.zeros((0, 3)),
+        empty = np.zeros((0, 3))
+        S = np.concatenate(src) if src else empty
+        D = np.concatenate(dst) if dst else empty
+        W = np.concatenate(w) if w else np.zeros(0)
+        return S, D, W, (ratios[0], ratios[1]), pair
+
+    @staticmethod
+    def _move(nodes: Vec, which: list[int], S: Vec, D: Vec, W: Vec) -> Vec:
+        """Nodes ``which`` moved by the weighted Kabsch fit of S onto D (if it is fixed)."""
+        if len(S) < 3 or W.sum() <= 0:
+            return nodes
+        R, t = weighted_kabsch(S, D, W)
+        out = nodes.copy()
+        out[which] = nodes[which] @ R.T + t
+        return out
+
+    def _shape_from_cables(self, previous: Vec, cable_lengths: Vec) -> Vec:
+        """The shape the cable lengths give (rod lengths held), placed near ``previous``."""
+        n = len(previous)
+        return self._correct(
+            previous,
+            previous,
+            np.zeros(n),
+            cable_lengths,
+            w_unary=np.full(n, 1e-3),
+            w_bin=np.ones(len(self.description.cable_nodes)),
+            physical=False,
         )
-        if src and sum(len(s) for s in src) >= 3:
-            S, D, W = np.concatenate(src), np.concatenate(dst), np.concatenate(w)
-            if W.sum() > 0:
-                R, t = weighted_kabsch(S, D, W)
-                nodes = nodes.copy()
-                nodes[[i, j]] = nodes[[i, j]] @ R.T + t
-        return nodes, (ratios[0], ratios[1]), pair
 
     # ------------------------------------------------------------------ correction
 
@@ -358,25 +402,26 @@ class IcpTracker:
         previous: NDArray[np.float64],
         ratio: NDArray[np.float64],
         cable_lengths: NDArray[np.float64] | None,
+        *,
+        w_unary: Vec | None = None,
+        w_bin: Vec | None = None,
+        physical: bool = True,
     ) -> NDArray[np.float64]:
-        """Eq. 2 by SLSQP, with the constraints of section 4.3."""
+        """Eq. 2 by SLSQP, with the constraints of section 4.3 (``physical``: the ground
+        and rod-rod ones; the rod lengths always). Weights as section 4.4 unless given."""
         p = self.params
         d = self.description
         n = len(hat)
-        w_unary = np.maximum(ratio, 0.1) if p.adaptive_weights else np.ones(n)
+        if w_unary is None:
+            w_unary = np.maximum(ratio, 0.1) if p.adaptive_weights else np.ones(n)
         cables = d.cable_nodes
-        if cable_lengths is not None:
-            ri, rj = ratio[cables[:, 0]], ratio[cables[:, 1]]
-            if p.adaptive_weights:
-                w_bin = np.where(
-                    (ri > 0.5) & (rj > 0.5),
-                    0.0,
-                    np.where((ri < 0.2) | (rj < 0.2), 0.25, 0.25 * (1.0 - 0.5 * (ri + rj))),
-                )
-            else:
-                w_bin = np.full(len(cables), 0.25)
-        else:
+        if cable_lengths is None:
             w_bin = np.zeros(len(cables))
+        elif w_bin is None:
+            ri, rj = ratio[cables[:, 0]], ratio[cables[:, 1]]
+            mixed = np.where((ri < 0.2) | (rj < 0.2), 0.25, 0.25 * (1.0 - 0.5 * (ri + rj)))
+            adaptive = np.where((ri > 0.5) & (rj > 0.5), 0.0, mixed)
+            w_bin = adaptive if p.adaptive_weights else np.full(len(cables), 0.25)
         lengths = cable_lengths if cable_lengths is not None else np.zeros(len(cables))
         ci, cj = cables[:, 0], cables[:, 1]
 
@@ -410,7 +455,7 @@ class IcpTracker:
                 return g.ravel()
 
             constraints.append({"type": "eq", "fun": rod_length, "jac": rod_length_jac})
-        if p.ground_constraint:
+        if p.ground_constraint and physical:
             normal, offset = self.ground
             floor = np.array([self.radius[self._rod_of(e)] for e in range(n)])
             jac = np.zeros((n, n * 3))
@@ -423,7 +468,7 @@ class IcpTracker:
                     "jac": lambda v: jac,
                 }
             )
-        if p.rod_rod_constraint:
+        if p.rod_rod_constraint and physical:
             constraints += self._rod_rod_constraints(previous, n)
         result = minimize(
             objective,
