@@ -147,6 +147,9 @@ def run_benchmarks(
             "speedup_vs_filterpy_numpy_model": 50,
         }
         results["estimation"] = bench_estimation()
+        from agents.bench_icp import bench_icp
+
+        results["icp"] = bench_icp()
     if bag_minutes > 0:
         from agents.bench_bags import bench_bags
 

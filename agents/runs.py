@@ -40,16 +40,19 @@ def record_run(
     policy: Callable[[TensegrityEnv, NDArray[np.float32], int], NDArray[np.float32]],
     steps: int,
     seed: int = 0,
+    camera: bool = False,
     **make_kwargs: Any,
 ) -> RecordedRun:
     """Run ``policy(env, observation, step)`` for ``steps`` control steps; keep everything.
 
     The env runs with the oracle so that the recorded samples do not depend on any
-    estimator; estimators are replayed on them afterwards.
+    estimator; estimators are replayed on them afterwards. ``camera`` records RGB-D
+    frames too.
     """
     env = gym.make(env_id, estimator="oracle", max_episode_steps=steps + 1, **make_kwargs)
     inner = cast("TensegrityEnv", env.unwrapped)
     sink = MemorySink()
+    inner.backend.camera = camera  # type: ignore[attr-defined]
     inner.backend = RecordingBackend(inner.backend, sink)
     obs, _ = env.reset(seed=seed)
     for k in range(steps):

@@ -135,3 +135,18 @@ def test_icp_is_a_registered_estimator_name() -> None:
     env.close()
     with pytest.raises(ValueError, match="max_iterations"):
         IcpParams(max_iterations=0)
+
+
+def test_the_icp_bench_scores_every_variant_of_table_1() -> None:
+    from agents.bench_icp import VARIANTS, bench_icp
+
+    result = bench_icp(seeds=(0,), steps=12, env_steps=5)
+    table = result["table"]
+    assert set(VARIANTS) < set(table) and "measured (cable sensors)" in table
+    for name in VARIANTS:
+        row = table[name]
+        assert 0.0 <= row["translation_cm"][0] < 10.0, name
+        assert 0.0 <= row["within_2cm_5deg_percent"] <= 100.0
+        assert row["ms_per_frame_median"] > 0.0
+    assert table["measured (cable sensors)"]["shape_cm"][0] > 0.0
+    assert result["env_speed"]["estimator"] == "icp"
