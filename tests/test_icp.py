@@ -95,7 +95,7 @@ def test_the_tracker_follows_the_rolling_robot() -> None:
     assert np.linalg.norm(true[-1].mean(0) - true[0].mean(0)) > 0.15  # it did roll
     assert errors.translation.mean() < 0.02
     assert np.degrees(errors.rotation.mean()) < 6.0
-    assert com.mean() < 0.02 and reinit == 0
+    assert com.mean() < 0.02 and reinit <= 1  # a loss, if any, is recovered from
 
 
 def test_the_icp_env_is_repeatable_bit_for_bit() -> None:

@@ -69,6 +69,13 @@ class IcpParams:
     """Mean share of visible model points matched under which the track is lost."""
     max_speed: float = 3.0
     """Endcap speed (m/s) beyond which a jump is not physical: the track is lost."""
+    max_cable_residual: float = 0.04
+    """Mean disagreement (m) between the tracked endcap distances and the cable sensors
+    beyond which the track is lost: a rod caught in a wrong pose still matches some of
+    its points, but not the cables. (The median missed such poses in the benchmark.)"""
+    cable_gate: float | None = 0.04
+    """A cable whose reading differs from the transition's endcap distance by more (m)
+    is left out of the correction; None keeps every cable (as papers/003)."""
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -290,11 +297,23 @@ class IcpTracker:
             lost, reason = True, f"fitness {fitness:.3f} below {p.min_fitness}"
         elif jump > p.max_speed * dt:
             lost, reason = True, f"an endcap jumped {jump:.2f} m in {dt:.2f} s"
+        elif (
+            cable_lengths is not None
+            and (residual := self._cable_residual(nodes, cable_lengths)) > p.max_cable_residual
+        ):
+            lost, reason = True, f"endcap distances disagree with the cables by {residual:.3f} m"
+
         if not lost:
             self.nodes = nodes
             self._dummies = matches
             self._t = frame.t
         return TrackResult(nodes if not lost else previous, ratio, lost, reason)
+
+    def _cable_residual(self, nodes: Vec, cable_lengths: Vec) -> float:
+        """Mean |endcap distance - cable reading| over the cables (m)."""
+        c = self.description.cable_nodes
+        dist = np.linalg.norm(nodes[c[:, 0]] - nodes[c[:, 1]], axis=1)
+        return float(np.mean(np.abs(dist - cable_lengths)))
 
     def _keep_ends(self, nodes: Vec, previous: Vec) -> Vec:
         """A rod's two endcaps look alike: where ICP turned a rod end for end, swap them
@@ -424,6 +443,11 @@ class IcpTracker:
             w_bin = adaptive if p.adaptive_weights else np.full(len(cables), 0.25)
         lengths = cable_lengths if cable_lengths is not None else np.zeros(len(cables))
         ci, cj = cables[:, 0], cables[:, 1]
+        if p.cable_gate is not None and physical:
+            # A slack cable's stretch sensor reads near its rest length, far from the
+            # endcap distance; such a reading would drag the rods to fit it.
+            off = np.abs(np.linalg.norm(hat[ci] - hat[cj], axis=1) - lengths)
+            w_bin = np.where(off > p.cable_gate, 0.0, w_bin)
 
         def objective(v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
             q = v.reshape(n, 3)
