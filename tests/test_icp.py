@@ -150,3 +150,37 @@ def test_the_icp_bench_scores_every_variant_of_table_1() -> None:
         assert row["ms_per_frame_median"] > 0.0
     assert table["measured (cable sensors)"]["shape_cm"][0] > 0.0
     assert result["env_speed"]["estimator"] == "icp"
+
+
+def test_icp_runs_over_a_recorded_bag_and_refuses_one_without_frames(tmp_path, caplog) -> None:
+    import json
+    import logging
+
+    from agents.cli import main
+
+    assert (
+        main(["record", "--estimator", "icp", "--steps", "25", "--out", str(tmp_path / "a")]) == 0
+    )
+    out = tmp_path / "est"
+    assert (
+        main(
+            [
+                "estimate",
+                str(tmp_path / "a"),
+                "--estimator",
+                "icp",
+                "--out",
+                str(out),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["finite"] and metrics["com_rmse_m"] < 0.03
+    assert (
+        main(["record", "--estimator", "oracle", "--steps", "3", "--out", str(tmp_path / "b")]) == 0
+    )
+    with caplog.at_level(logging.ERROR):
+        code = main(["estimate", str(tmp_path / "b"), "--estimator", "icp", "--out", str(out)])
+    assert code == 2 and "needs RGB-D frames" in caplog.text
