@@ -63,8 +63,9 @@ def endcap_masks(
     masks = np.zeros((len(hues), *rgb.shape[:2]), dtype=np.bool_)
     if not hues:
         return masks
-    top = rgb.max(axis=-1).astype(np.int16)
-    chroma = top - rgb.min(axis=-1)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]  # channel-wise: far faster than max(-1)
+    top = np.maximum(np.maximum(r, g), b).astype(np.int16)
+    chroma = top - np.minimum(np.minimum(r, g), b)
     s_min = min(c.min_saturation for c in hues)
     v_min = min(c.min_value for c in hues)
     rows, cols = np.nonzero((chroma >= s_min * top) & (top >= v_min * 255.0) & (chroma > 0))

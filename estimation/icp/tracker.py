@@ -327,15 +327,19 @@ class IcpTracker:
                 out[[i, j]] = nodes[[j, i]]
         return out
 
-    def _rod_frame(
-        self, a: NDArray[np.float64], b: NDArray[np.float64]
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _rod_frame(self, a: Vec, b: Vec) -> tuple[Vec, Vec]:
         """A rotation (3, 3) with z along a -> b, and the midpoint: a rod's frame."""
         z = (b - a) / np.linalg.norm(b - a)
-        helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        x = np.cross(helper, z)
+        # x = helper x z, written out: np.cross is slow on single vectors.
+        if abs(z[0]) < 0.9:  # helper (1, 0, 0)
+            x = np.array([0.0, -z[2], z[1]])
+        else:  # helper (0, 1, 0)
+            x = np.array([z[2], 0.0, -z[0]])
         x /= np.linalg.norm(x)
-        return np.stack([x, np.cross(z, x), z], axis=1), 0.5 * (a + b)
+        y = np.array(
+            [z[1] * x[2] - z[2] * x[1], z[2] * x[0] - z[0] * x[2], z[0] * x[1] - z[1] * x[0]]
+        )
+        return np.stack([x, y, z], axis=1), 0.5 * (a + b)
 
     def _correspond(
         self,

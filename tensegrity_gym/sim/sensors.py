@@ -337,7 +337,8 @@ class CameraModel:
         rng: np.random.Generator,
     ) -> RgbdFrame:
         c = self.config
-        sigma = c.depth_noise + c.depth_noise_quadratic * depth.astype(np.float64) ** 2
-        noisy = depth + sigma * rng.standard_normal(depth.shape)
+        # In float32 throughout: the frame is float32, and this runs every camera frame.
+        sigma = np.float32(c.depth_noise) + np.float32(c.depth_noise_quadratic) * depth * depth
+        noisy = depth + sigma * rng.standard_normal(depth.shape, dtype=np.float32)
         noisy[(depth >= 0.999 * c.far) | (noisy <= 0.0)] = 0.0  # no return
-        return RgbdFrame(t, rgb, noisy.astype(np.float32))
+        return RgbdFrame(t, rgb, noisy)
