@@ -184,3 +184,28 @@ def test_icp_runs_over_a_recorded_bag_and_refuses_one_without_frames(tmp_path, c
     with caplog.at_level(logging.ERROR):
         code = main(["estimate", str(tmp_path / "b"), "--estimator", "icp", "--out", str(out)])
     assert code == 2 and "needs RGB-D frames" in caplog.text
+
+
+def test_rod_orientations_turn_about_their_axes_as_little_as_possible() -> None:
+    """Section 4.2: each new orientation has the new axis and is the nearest to the old."""
+    d = load_robot("three_bar")
+    env = gym.make("tensegrity_gym/ThreeBarRoll-v0", estimator="icp")
+    obs, _ = env.reset(seed=1)
+    gait = FaceGait(d, env.unwrapped.task)
+    quats, nodes = [], []
+    for _ in range(40):
+        obs, *_ = env.step(gait(obs))
+        e = env.unwrapped._estimate
+        quats.append(e.rod_quaternions)
+        nodes.append(e.node_positions)
+    env.close()
+    R = Rotation.from_quat(np.concatenate(quats)).as_matrix().reshape(40, 3, 3, 3)
+    x = np.array(nodes)
+    axes = x[:, d.rod_nodes[:, 1]] - x[:, d.rod_nodes[:, 0]]
+    axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+    assert np.allclose(R[..., :, 2], axes, atol=1e-9)  # body z is the rod axis
+    for k in range(39):
+        for r in range(3):
+            turn = np.degrees(Rotation.from_matrix(R[k, r].T @ R[k + 1, r]).magnitude())
+            tilt = np.degrees(np.arccos(np.clip(axes[k, r] @ axes[k + 1, r], -1.0, 1.0)))
+            assert abs(turn - tilt) < 1e-4  # no spin about the axis

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from estimation.icp.tracker import IcpParams, IcpTracker
 from estimation.oracle import latest_rest_lengths
@@ -59,6 +60,11 @@ class IcpEstimator:
             rest_lengths=self._rest.copy(),
             healthy=healthy,
             reinitialised=reinitialised,
+            rod_quaternions=(
+                Rotation.from_matrix(self.tracker.rotations).as_quat()
+                if self.tracker.nodes is not None
+                else None
+            ),
         )
 
     def reset(

@@ -154,6 +154,9 @@ class IcpTracker:
         self.sphere = _sphere_points(self.params.model_points)
         self.camera = np.asarray(calibration.camera_pose)[:3, 3]
         self.nodes: NDArray[np.float64] | None = None
+        self.rotations: NDArray[np.float64] = np.zeros((d.n_rods, 3, 3))
+        """Rod orientations (r, 3, 3), body z along the rod, turned about the axis as
+        little as possible from frame to frame (section 4.2)."""
         self.ground: tuple[NDArray[np.float64], float] = (np.array([0.0, 0.0, 1.0]), 0.0)
         self._dummies: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
         self._t: float | None = None
@@ -202,6 +205,9 @@ class IcpTracker:
             except ValueError:
                 pass
         self.nodes = nodes
+        # The angle about each axis is arbitrary at first (section 4.1).
+        axes = nodes[self.rod_nodes[:, 1]] - nodes[self.rod_nodes[:, 0]]
+        self.rotations = np.array([self._rod_frame(np.zeros(3), a)[0] for a in axes])
         self._dummies = [(np.zeros((0, 3)), np.zeros((0, 3))) for _ in self.rod_nodes]
         self._t = None  # the refinement below is not a motion: no jump test
         self.track(frame, cable_lengths, rng)
@@ -307,8 +313,32 @@ class IcpTracker:
         if not lost:
             self.nodes = nodes
             self._dummies = matches
+            self._turn_rotations(nodes)
             self._t = frame.t
         return TrackResult(nodes if not lost else previous, ratio, lost, reason)
+
+    def _turn_rotations(self, nodes: Vec) -> None:
+        """Each rod's new orientation: the previous one turned by the smallest rotation
+        that takes its old axis onto the new, the rotation with the new axis nearest the
+        old in SO(3) (papers/003 section 4.2)."""
+        for k, (i, j) in enumerate(self.rod_nodes):
+            old = self.rotations[k][:, 2]
+            new = (nodes[j] - nodes[i]) / np.linalg.norm(nodes[j] - nodes[i])
+            v = np.array(
+                [
+                    old[1] * new[2] - old[2] * new[1],
+                    old[2] * new[0] - old[0] * new[2],
+                    old[0] * new[1] - old[1] * new[0],
+                ]
+            )
+            c = float(old @ new)
+            if c < -1.0 + 1e-12:  # turned end for end: any half turn will do
+                R = self._rod_frame(np.zeros(3), old)[0] @ np.diag([1.0, -1.0, -1.0])
+                turn = R @ self.rotations[k].T
+            else:
+                vx = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+                turn = np.eye(3) + vx + vx @ vx / (1.0 + c)
+            self.rotations[k] = turn @ self.rotations[k]
 
     def _cable_residual(self, nodes: Vec, cable_lengths: Vec) -> float:
         """Mean |endcap distance - cable reading| over the cables (m)."""

@@ -286,8 +286,11 @@ class RobotCodec:
         x = estimate.node_positions
         rod_nodes = self.description.rod_nodes
         centres = rod_centres(x, rod_nodes)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            quats = rod_quaternion_from_axis(rod_axes(x, rod_nodes))
+        if estimate.rod_quaternions is not None:  # tracked about the axis too
+            quats = estimate.rod_quaternions
+        else:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                quats = rod_quaternion_from_axis(rod_axes(x, rod_nodes))
         return [
             ("/estimate/rod_poses", self._pose_array(estimate.t, centres, quats)),
             (

@@ -30,6 +30,10 @@ class Estimate:
     """False while the estimator has lost track or has just been re-initialised."""
     reinitialised: bool = False
     """True on the update in which the estimator re-initialised itself."""
+    rod_quaternions: NDArray[np.float64] | None = None
+    """Rod orientations (r, 4), (x, y, z, w), body z from a rod's first node to its second,
+    where the method tracks the turn about the axis; None where it does not (the axis
+    alone is known: ``rod_quaternion_from_axis`` gives the canonical orientation)."""
 
     def is_finite(self) -> bool:
         return bool(
