@@ -260,7 +260,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument(
         "--policy",
         default="scripted",
-        help="scripted (the robot's face gait), random, or a stable-baselines3 model file",
+        help="scripted (the robot's face gait), random, or a training run folder (from train)",
     )
     rec.add_argument("--episodes", type=int, default=1)
     rec.add_argument("--steps", type=int, default=None, help="control steps per episode")

@@ -41,14 +41,15 @@ __all__ = ["POLICIES", "estimate_bag", "make_policy", "record", "write_tum"]
 log = logging.getLogger(__name__)
 
 POLICIES = ("scripted", "random")
-"""Built-in policies; a path to a stable-baselines3 model zip is the third kind."""
+"""Built-in policies; a training run's folder (from ``train``) is the third kind."""
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
 
 def make_policy(name: str, env: gym.Env[Any, Any], seed: int) -> tuple[Policy, Callable[[], None]]:
     """(policy, reset) for ``scripted`` (the robot's face gait), ``random`` (uniform
-    actions from a generator seeded with ``seed``) or a stable-baselines3 model file."""
+    actions from a generator seeded with ``seed``) or a training run of ``train`` (its
+    folder or its ``model.zip``), which acts on observations normalised as in training."""
     inner = cast("TensegrityEnv", env.unwrapped)
     if name == "scripted":
         gait = FaceGait(inner.backend.description, inner.task)
@@ -64,35 +65,12 @@ def make_policy(name: str, env: gym.Env[Any, Any], seed: int) -> tuple[Policy, C
     path = Path(name)
     if not path.exists():
         raise ValueError(
-            f"policy {name!r}: not one of {list(POLICIES)} and no model file at that path"
+            f"policy {name!r}: not one of {list(POLICIES)} and no training run at that path"
         )
-    return _load_model(path), lambda: None
+    from agents.evaluate import load_policy
 
-
-def _load_model(path: Path) -> Policy:
-    """A stable-baselines3 model's deterministic policy; the algorithm is found by trying."""
-    try:
-        import stable_baselines3 as sb3
-    except ImportError as err:  # pragma: no cover - sb3 is in the rl extra
-        raise ValueError(f"policy {path}: loading a model needs stable-baselines3") from err
-    errors = []
-    for algo in (sb3.PPO, sb3.SAC, sb3.TD3, sb3.A2C, sb3.DDPG):
-        try:
-            model = algo.load(path, device="cpu")
-        except Exception as err:  # each wrong algorithm fails in its own way
-            errors.append(f"{algo.__name__}: {err}")
-            continue
-        return _ModelPolicy(model)
-    raise ValueError(f"policy {path}: not a stable-baselines3 model ({'; '.join(errors)})")
-
-
-class _ModelPolicy:
-    def __init__(self, model: Any) -> None:
-        self.model = model
-
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        action, _ = self.model.predict(obs, deterministic=True)
-        return np.asarray(action, dtype=np.float32)
+    # A run folder from `train`, or its model.zip: the model with its normalisation.
+    return load_policy(path if path.is_dir() else path.parent).act, lambda: None
 
 
 def record(

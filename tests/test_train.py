@@ -240,3 +240,17 @@ def test_training_is_reproducible_over_its_first_10000_steps(tmp_path: Path) -> 
     first, second = rewards(tmp_path / "a"), rewards(tmp_path / "b")
     assert len(first) >= 30  # 10,240 steps: 34 episodes of 300 steps
     assert first == second
+
+
+def test_record_takes_a_training_run_as_its_policy(tiny_run: Path) -> None:
+    from agents.offline import make_policy
+
+    env = gym.make(THREE_BAR, estimator="oracle")
+    obs, _ = env.reset(seed=0)
+    for path in (tiny_run, tiny_run / "model.zip"):
+        act, _ = make_policy(str(path), env, 0)
+        # the same action as the evaluated policy: observations normalised as in training
+        assert np.array_equal(act(obs), load_policy(tiny_run).act(obs))
+    env.close()
+    with pytest.raises(ValueError, match="no training run at that path"):
+        make_policy("nowhere/run", env, 0)

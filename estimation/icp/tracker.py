@@ -148,6 +148,10 @@ class IcpTracker:
         self.hues = rod_hues(d)
         self.rod_nodes = d.rod_nodes
         self.radius = np.array([r.endcap_radius for r in d.rods])
+        self._node_radius = np.zeros(d.n_nodes)
+        """Each endcap's radius (m): how far above the ground its centre stays."""
+        for k, (i, j) in enumerate(d.rod_nodes):
+            self._node_radius[[i, j]] = self.radius[k]
         self.rod_diameter = 2.0 * max(r.radius for r in d.rods)
         x0 = d.initial_positions
         self.node_spacing = np.linalg.norm(x0[d.rod_nodes[:, 1]] - x0[d.rod_nodes[:, 0]], axis=1)
@@ -157,7 +161,7 @@ class IcpTracker:
         self.rotations: NDArray[np.float64] = np.zeros((d.n_rods, 3, 3))
         """Rod orientations (r, 3, 3), body z along the rod, turned about the axis as
         little as possible from frame to frame (section 4.2)."""
-        self.ground: tuple[NDArray[np.float64], float] = (np.array([0.0, 0.0, 1.0]), 0.0)
+        self._set_ground(np.array([0.0, 0.0, 1.0]), 0.0)
         self._dummies: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
         self._t: float | None = None
 
@@ -201,7 +205,7 @@ class IcpTracker:
         if len(floor) > 100:
             floor = floor[rng.choice(len(floor), min(len(floor), 3000), replace=False)]
             try:
-                self.ground = fit_ground_plane(floor, rng)
+                self._set_ground(*fit_ground_plane(floor, rng))
             except ValueError:
                 pass
         self.nodes = nodes
@@ -213,6 +217,15 @@ class IcpTracker:
         self.track(frame, cable_lengths, rng)
         self._t = frame.t
         return True
+
+    def _set_ground(self, normal: Vec, offset: float) -> None:
+        """The ground plane n.x + d = 0, and the Jacobian (n_nodes, 3 n_nodes) of the
+        endcaps' heights above it, which the correction uses every iteration."""
+        self.ground = (normal, offset)
+        n = len(self._node_radius)
+        self._ground_jac = np.zeros((n, 3 * n))
+        for e in range(n):
+            self._ground_jac[e, 3 * e : 3 * e + 3] = normal
 
     @staticmethod
     def _two_clusters(p: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -516,10 +529,7 @@ class IcpTracker:
             constraints.append({"type": "eq", "fun": rod_length, "jac": rod_length_jac})
         if p.ground_constraint and physical:
             normal, offset = self.ground
-            floor = np.array([self.radius[self._rod_of(e)] for e in range(n)])
-            jac = np.zeros((n, n * 3))
-            for e in range(n):
-                jac[e, 3 * e : 3 * e + 3] = normal
+            floor, jac = self._node_radius, self._ground_jac
             constraints.append(
                 {
                     "type": "ineq",
@@ -539,9 +549,6 @@ class IcpTracker:
         )
         out = result.x.reshape(n, 3)
         return out if np.all(np.isfinite(out)) else hat
-
-    def _rod_of(self, node: int) -> int:
-        return int(np.flatnonzero((self.rod_nodes == node).any(axis=1))[0])
 
     def _rod_rod_constraints(
         self, previous: NDArray[np.float64], n: int

@@ -117,6 +117,20 @@ class RobotCodec:
         )
         return self._serialize(msg, m.JOINT_STATE)
 
+    def _image(self, t: float, encoding: str, pixels: NDArray[Any], pixel_bytes: int) -> bytes:
+        """A sensor_msgs/Image of (H, W[, C]) pixels, little endian, rows packed."""
+        h, w = pixels.shape[:2]
+        msg = self.store.types[m.IMAGE](
+            header=self._header(t, CAMERA_FRAME),
+            height=h,
+            width=w,
+            encoding=encoding,
+            is_bigendian=0,
+            step=pixel_bytes * w,
+            data=pixels.view(np.uint8).reshape(-1),
+        )
+        return self._serialize(msg, m.IMAGE)
+
     def _pose_array(self, t: float, centres: Vec, quats: Vec) -> bytes:
         poses = [
             self._Pose(
@@ -235,29 +249,11 @@ class RobotCodec:
             )
             return [("/contacts", self._serialize(msg, m.CONTACTS))]
         if isinstance(sample, RgbdFrame):
-            image = self.store.types[m.IMAGE]
-            h, w = sample.depth.shape
-            rgb = image(
-                header=self._header(sample.t, CAMERA_FRAME),
-                height=h,
-                width=w,
-                encoding="rgb8",
-                is_bigendian=0,
-                step=3 * w,
-                data=np.ascontiguousarray(sample.rgb, dtype=np.uint8).reshape(-1),
-            )
-            depth = image(
-                header=self._header(sample.t, CAMERA_FRAME),
-                height=h,
-                width=w,
-                encoding="32FC1",
-                is_bigendian=0,
-                step=4 * w,
-                data=np.ascontiguousarray(sample.depth, dtype="<f4").view(np.uint8).reshape(-1),
-            )
+            rgb = np.ascontiguousarray(sample.rgb, dtype=np.uint8)
+            depth = np.ascontiguousarray(sample.depth, dtype="<f4")
             return [
-                ("/camera/color/image_raw", self._serialize(rgb, m.IMAGE)),
-                ("/camera/depth/image_raw", self._serialize(depth, m.IMAGE)),
+                ("/camera/color/image_raw", self._image(sample.t, "rgb8", rgb, 3)),
+                ("/camera/depth/image_raw", self._image(sample.t, "32FC1", depth, 4)),
             ]
         raise TypeError(f"no message for a sample of type {type(sample).__name__}")
 

@@ -53,6 +53,7 @@ from tensegrity_gym.model.samples import (
     RgbdFrame,
     UwbRangeSample,
     ns_to_seconds,
+    seconds_to_ns,
 )
 
 if TYPE_CHECKING:
@@ -533,11 +534,11 @@ class BagReader:
                     b.samples.append(codec.make_cable_lengths(stamp, values))
             elif topic == "/uwb/ranges":
                 uwb = codec.decode_uwb(raw)
-                if self._in_order(last_stamp, topic, round(uwb.t * 1e9)):
+                if self._in_order(last_stamp, topic, seconds_to_ns(uwb.t)):
                     b.samples.append(uwb)
             elif topic == "/contacts":
                 contact = codec.decode_contacts(raw)
-                if self._in_order(last_stamp, topic, round(contact.t * 1e9)):
+                if self._in_order(last_stamp, topic, seconds_to_ns(contact.t)):
                     b.samples.append(contact)
             elif topic == "/camera/color/image_raw":
                 stamp, image = codec.decode_image(raw, "color")
