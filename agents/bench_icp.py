@@ -29,7 +29,7 @@ if TYPE_CHECKING:
     from hardware.recording import RecordedRun
     from tensegrity_gym.envs.roll_env import TensegrityEnv
 
-__all__ = ["VARIANTS", "bench_icp"]
+__all__ = ["VARIANTS", "bench_camera_render", "bench_icp"]
 
 ENV_ID = "tensegrity_gym/ThreeBarRoll-v0"
 VARIANTS: dict[str, IcpParams] = {
@@ -101,6 +101,34 @@ def _row(
     }
 
 
+def bench_camera_render(frames: int = 100, seed: int = 0) -> dict[str, Any]:
+    """Time (ms) to render one RGB-D frame of the 3-bar robot's overhead camera, the
+    robot moving between frames."""
+    from tensegrity_gym.model.description import load_robot
+    from tensegrity_gym.sim.backend import SimBackend
+
+    d = load_robot("three_bar")
+    backend = SimBackend(d, camera=True)
+    rng = np.random.default_rng(seed)
+    lo, hi, _ = d.motor_limits
+    try:
+        backend.reset(rng)
+        times = []
+        for _ in range(frames):
+            backend.step(rng.uniform(lo, hi))
+            t = time.perf_counter()
+            backend.world.camera_image(d.sensors.camera)
+            times.append(time.perf_counter() - t)
+    finally:
+        backend.close()
+    cam = d.sensors.camera
+    return {
+        "resolution": f"{cam.width}x{cam.height}",
+        "frames": frames,
+        "ms_per_frame_median": round(1e3 * float(np.median(times)), 2),
+    }
+
+
 def bench_icp(
     seeds: tuple[int, ...] = (0, 1, 2), steps: int = 150, env_steps: int = 200
 ) -> dict[str, Any]:
@@ -153,5 +181,6 @@ def bench_icp(
             "env_steps_per_s with icp, rendering included": 40.0,
         },
         "env_speed": bench_env_speed(ENV_ID, env_steps, estimator="icp"),
+        "camera_render": bench_camera_render(),
         "paper_table_1_real_robot": {"proposed": [0.99, 2.84, 85.5, 0.77, 0.80]},
     }

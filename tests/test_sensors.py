@@ -641,6 +641,49 @@ def test_camera_frames(d: RobotDescription) -> None:
     assert hits >= d.n_nodes - 1  # one endcap may hide behind another rod
 
 
+def test_camera_floor_composite_equals_one_render(d: RobotDescription) -> None:
+    # The floor is rendered once per camera pose in a client of its own and the robot
+    # z-composited over it; that must give the pixels of one render of both, also
+    # where endcaps touch the floor and where the robot hides part of it.
+    import pybullet
+
+    from tensegrity_gym.sim import world as world_module
+
+    cam = d.sensors.camera
+    backend = SimBackend(d, camera=True)
+    try:
+        backend.reset(np.random.default_rng(SEED))
+        world = backend.world
+        rng = np.random.default_rng(1)
+        lo, hi, _ = d.motor_limits
+        images, states = [], []
+        for _ in range(12):
+            backend.step(rng.uniform(lo, hi))
+            images.append(world.camera_image(cam))
+            states.append(world.save_state())
+        assert len(world._floor_images) == 1  # a fixed camera renders its floor once
+        # Make the floor visible in the robot's own client and render in one pass.
+        pybullet.changeVisualShape(
+            world.ground, -1, rgbaColor=[0.55, 0.55, 0.5, 1.0], physicsClientId=world.client
+        )
+        view = pybullet.computeViewMatrix(cam.position, cam.target, cam.up)
+        proj = pybullet.computeProjectionMatrixFOV(
+            cam.vertical_fov, cam.width / cam.height, cam.near, cam.far
+        )
+        for (rgb, depth), state in zip(images, states, strict=True):
+            world.restore_state(state)
+            one_rgb, zb = world_module._render(world.client, cam.width, cam.height, view, proj)
+            one_depth = (cam.far * cam.near / (cam.far - (cam.far - cam.near) * zb)).astype(
+                np.float32
+            )
+            np.testing.assert_array_equal(rgb, one_rgb)
+            np.testing.assert_array_equal(depth, one_depth)
+            floor = world._floor_images[next(iter(world._floor_images))][0]
+            assert (rgb != floor).any(axis=-1).sum() > 100  # the robot is in the picture
+    finally:
+        backend.close()
+
+
 # ------------------------------------------------------------------------- finiteness
 
 
