@@ -107,10 +107,13 @@ def run_benchmarks(
     memory_steps: int = 100_000,
     estimation: bool = False,
     bag_minutes: float = 10.0,
+    link_steps: int = 300,
+    soak_minutes: float = 0.0,
 ) -> dict[str, Any]:
-    """Env speed (oracle and UKF), memory, and the bag layer (:mod:`agents.bench_bags`);
-    with ``estimation``, also the estimation study and the UKF's speed against
-    filterpy's (:mod:`agents.bench_estimation`)."""
+    """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.bench_bags`) and
+    the robot link against the emulator (:mod:`agents.bench_link`, ``link_steps`` 10 Hz
+    steps, and a soak of ``soak_minutes``); with ``estimation``, also the estimation
+    study and the UKF's speed against filterpy's (:mod:`agents.bench_estimation`)."""
     results: dict[str, Any] = {
         "machine": {
             "platform": platform.platform(),
@@ -154,6 +157,21 @@ def run_benchmarks(
         from agents.bench_bags import bench_bags
 
         results["bags"] = bench_bags(minutes=bag_minutes)
+    if link_steps > 0 or soak_minutes > 0:
+        from agents.bench_link import bench_latency, bench_soak, bench_throughput
+
+        link: dict[str, Any] = {}
+        if link_steps > 0:
+            link["latency"] = bench_latency(link_steps)
+            link["throughput"] = bench_throughput(max(link_steps * 2 // 3, 50))
+        if soak_minutes > 0:
+            link["soak"] = bench_soak(soak_minutes)
+        link["targets"] = {
+            "driver_added_latency_ms median and p99": 5.0,
+            "throughput dropped_on_driver_side": 0,
+            "soak growth": "none in memory or latency",
+        }
+        results["link"] = link
     if memory_steps > 0:
         results["memory"] = bench_memory("tensegrity_gym/ThreeBarRoll-v0", memory_steps)
     return results

@@ -113,6 +113,8 @@ def _bench(args: argparse.Namespace) -> int:
         memory_steps=args.memory_steps,
         estimation=args.estimation,
         bag_minutes=args.bag_minutes,
+        link_steps=args.link_steps,
+        soak_minutes=args.soak_minutes,
     )
     text = json.dumps(results, indent=2)
     if args.out:
@@ -177,6 +179,12 @@ def _estimate(args: argparse.Namespace) -> int:
         sys.stdout.write(line + "\n")
     sys.stdout.write(f"written to {args.out}\n")
     return 0
+
+
+def _emulate(args: argparse.Namespace) -> int:
+    from hardware.link.emulator import run_from_args
+
+    return run_from_args(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -252,6 +260,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=10.0,
         help="minutes of 3-bar recording whose reading and replay are timed (0: skip)",
     )
+    bench.add_argument(
+        "--link-steps",
+        type=int,
+        default=300,
+        help="10 Hz steps of the robot-link latency test against the emulator (0: skip)",
+    )
+    bench.add_argument(
+        "--soak-minutes",
+        type=float,
+        default=0.0,
+        help="minutes of emulated operation watched for memory and latency growth",
+    )
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)
 
@@ -284,6 +304,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     est.add_argument("--no-progress", action="store_true", help="no progress bar")
     est.set_defaults(func=_estimate)
+
+    from hardware.link.emulator import add_arguments
+
+    emu = sub.add_parser(
+        "emulate", help="serve the simulated robot over the robot wire (Zenoh), in real time"
+    )
+    add_arguments(emu)
+    emu.set_defaults(func=_emulate)
     return parser
 
 

@@ -129,8 +129,11 @@ class RecordingBackend:
         t_command = self.t_command
         result = self.inner.step(targets)
         command = result.command if result.command is not None else targets
-        self._t_ns += self._period_ns
         truth = None if result.diverged else self.inner.ground_truth()
+        # A robot's clock runs on its own: the next command is logged after everything
+        # this period brought, which is exactly one period on for a simulation.
+        newest = [s.t for s in result.samples] + ([truth.t] if truth is not None else [])
+        self._t_ns = max(self._t_ns + self._period_ns, seconds_to_ns(max(newest, default=0.0)))
         step = RecordedStep(list(result.samples), np.array(command, dtype=np.float64), truth)
         self.sink.step(t_command, step)
         return result
@@ -140,6 +143,9 @@ class RecordingBackend:
 
     def render(self, width: int, height: int) -> NDArray[np.uint8]:
         return self.inner.render(width, height)
+
+    def stop(self) -> None:
+        self.inner.stop()
 
     def close(self) -> None:
         try:

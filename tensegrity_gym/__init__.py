@@ -27,3 +27,20 @@ register(
     max_episode_steps=300,
     kwargs={"robot": "superball"},
 )
+
+# The same robots through the hardware driver: the real robot, or the emulator
+# (``tensegrity-gym emulate``), on the network. Pass driver="zenoh/tcp/HOST:PORT".
+register(
+    id="tensegrity_gym/ThreeBarRollHardware-v0",
+    entry_point=_ENTRY,
+    max_episode_steps=300,
+    nondeterministic=True,
+    kwargs={"robot": "three_bar", "driver": "zenoh/tcp/127.0.0.1:7447"},
+)
+register(
+    id="tensegrity_gym/SuperBallRollHardware-v0",
+    entry_point=_ENTRY,
+    max_episode_steps=300,
+    nondeterministic=True,
+    kwargs={"robot": "superball", "driver": "zenoh/tcp/127.0.0.1:7447"},
+)

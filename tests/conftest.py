@@ -2,12 +2,51 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import gymnasium as gym
 import pytest
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
 
+if TYPE_CHECKING:
+    from collections.abc import Callable, Iterator
+
+    from hardware.link.process import EmulatorProcess
+
 ENV_IDS = sorted(env_id for env_id in gym.registry if env_id.startswith("tensegrity_gym/"))
+HARDWARE_IDS = [env_id for env_id in ENV_IDS if gym.spec(env_id).nondeterministic]
+"""Ids of robots on the network: the tests run them against the emulator."""
+
+
+@pytest.fixture(scope="session")
+def emulators() -> Iterator[Callable[[str], EmulatorProcess]]:
+    """An emulator process per robot, started on first use, stopped at the end."""
+    from hardware.link.process import EmulatorProcess
+
+    started: dict[str, EmulatorProcess] = {}
+
+    def get(robot: str) -> EmulatorProcess:
+        if robot not in started:
+            started[robot] = EmulatorProcess(robot).start()
+        return started[robot]
+
+    yield get
+    for process in started.values():
+        process.stop()
+
+
+@pytest.fixture
+def make_env(emulators: Callable[[str], EmulatorProcess]) -> Callable[..., gym.Env]:
+    """``gym.make`` that points a hardware id at an emulator of its robot."""
+
+    def make(env_id: str, **kwargs: Any) -> gym.Env:
+        spec = gym.spec(env_id)
+        if spec.nondeterministic:
+            kwargs.setdefault("driver", emulators(spec.kwargs["robot"]).address)
+        return gym.make(env_id, **kwargs)
+
+    return make
 
 
 @pytest.fixture

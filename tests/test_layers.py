@@ -17,7 +17,7 @@ ALLOWED: dict[str, set[str]] = {
     "tensegrity_gym.sim": {"tensegrity_gym.model"},
     "estimation": {"tensegrity_gym.model"},
     "hardware": {"tensegrity_gym.model"},
-    "hardware.emulator": {"tensegrity_gym.model", "tensegrity_gym.sim"},
+    "hardware.link.emulator": {"hardware", "tensegrity_gym.model", "tensegrity_gym.sim"},
     "tensegrity_gym.envs": {
         "tensegrity_gym.model", "tensegrity_gym.sim", "tensegrity_gym.tasks",
         "estimation", "hardware",

@@ -89,7 +89,7 @@ class RobotCodec:
         self._cable_index = {name: k for k, name in enumerate(self.cable_names)}
         self._actuated_index = {name: k for k, name in enumerate(self.actuated_names)}
         self.n_modules = d.n_nodes + len(d.anchors)
-        self._imu_topics = [
+        self.imu_topics = [
             (self.topics.rod_topic("imu_raw", r), self.topics.rod_topic("imu_mag", r))
             for r in range(d.n_rods)
         ]
@@ -209,7 +209,7 @@ class RobotCodec:
 
     def encode_sample(self, sample: Sample) -> list[Encoded]:
         if isinstance(sample, ImuSample):
-            raw_topic, mag_topic = self._imu_topics[sample.rod]
+            raw_topic, mag_topic = self.imu_topics[sample.rod]
             frame = self.rod_names[sample.rod]
             return [
                 (raw_topic, m.encode_imu(sample.t, frame, gyro=sample.gyro, accel=sample.accel)),

@@ -32,7 +32,7 @@ import math
 import os
 import statistics
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, BinaryIO
 
@@ -41,19 +41,12 @@ from rosbags.rosbag2 import Reader, ReaderError
 from rosbags.rosbag2.storage_mcap import McapReader
 
 from hardware.bag import messages as m
+from hardware.bag.assembler import SampleAssembler
 from hardware.bag.codec import MessageError, RobotCodec, run_info_from_text
 from hardware.recording import RecordedRun, RecordedStep, hold_command
 from tensegrity_gym.model.description import DescriptionError, RobotDescription, loads_robot
 from tensegrity_gym.model.samples import (
-    AhrsSample,
-    CableLengthSample,
-    ContactSample,
-    EncoderSample,
-    ImuSample,
-    RgbdFrame,
-    UwbRangeSample,
     ns_to_seconds,
-    seconds_to_ns,
 )
 
 if TYPE_CHECKING:
@@ -74,16 +67,6 @@ _MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = 9  # opcode (1) + length (8)
 _DATA_END, _FOOTER = 0x0F, 0x02
 
-# Canonical order of samples that share a time stamp: the simulator's sensor order.
-_KIND_ORDER = {
-    ImuSample: 0,
-    AhrsSample: 1,
-    EncoderSample: 2,
-    CableLengthSample: 3,
-    ContactSample: 4,
-    UwbRangeSample: 5,
-    RgbdFrame: 6,
-}
 COMMAND_TOPIC = "/commands/rest_length_targets"
 _HEADER_TOPICS = (
     "/robot_description",
@@ -235,21 +218,6 @@ class BagPeriod:
     """The last estimate recorded in the period."""
     t_end: float
     """Log time (s) of the period's end: the next command, or the last message."""
-
-
-@dataclass
-class _Builder:
-    command: NDArray[np.float64] | None
-    samples: list[Sample] = field(default_factory=list)
-    imu: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
-        default_factory=dict
-    )
-    mag: dict[tuple[int, int], NDArray[np.float64]] = field(default_factory=dict)
-    color: dict[int, NDArray[np.uint8]] = field(default_factory=dict)
-    depth: dict[int, NDArray[np.float32]] = field(default_factory=dict)
-    truth_poses: dict[int, bytes] = field(default_factory=dict)
-    truth_state: dict[int, bytes] = field(default_factory=dict)
-    estimate: Estimate | None = None
 
 
 class BagReader:
@@ -463,16 +431,16 @@ class BagReader:
         for topic, count in sorted(self.unknown_topics.items()):
             self._skip("unknown_topic", topic, None, f"not in the topic table ({count} messages)")
             self.skipped["unknown_topic"] += count - 1
-        last_stamp: dict[str, int] = {}
-        current = _Builder(command=None)
+        assembler = SampleAssembler(self.codec, self._skip, order="strict")
+        command: NDArray[np.float64] | None = None  # of the period being read
         boundary: int | None = None  # log time of the next period's command
         pending: NDArray[np.float64] | None = None
         last_ns = 0
         for topic, ns, raw in self._messages(known):
             if boundary is not None and ns > boundary:
                 assert pending is not None
-                yield self._finish(current, boundary)
-                current, boundary, pending = _Builder(command=pending), None, None
+                yield self._finish(assembler, boundary, command)
+                command, boundary, pending = pending, None, None
             last_ns = ns
             if topic == COMMAND_TOPIC:
                 try:
@@ -480,14 +448,14 @@ class BagReader:
                 except MessageError as err:
                     self._skip("undecodable", topic, ns, str(err))
                     continue
-                if not self._in_order(last_stamp, topic, stamp):
+                if not assembler.accept(topic, stamp):
                     continue
                 if boundary is not None:  # two commands at one log time
                     self._skip("duplicate", topic, ns, "a second command at the same time")
                     continue
                 boundary, pending = ns, targets
                 continue
-            self._add(current, topic, ns, raw, last_stamp)
+            assembler.add(topic, raw, at_ns=ns)
         if pending is not None:
             self._skip(
                 "trailing_command",
@@ -495,104 +463,11 @@ class BagReader:
                 boundary or last_ns,
                 "nothing was recorded after it",
             )
-        yield self._finish(current, last_ns)
+        yield self._finish(assembler, last_ns, command)
 
-    def _in_order(self, last_stamp: dict[str, int], topic: str, stamp: int) -> bool:
-        previous = last_stamp.get(topic)
-        if previous is not None and stamp <= previous:
-            kind = "duplicate" if stamp == previous else "out_of_order"
-            why = f"stamp {ns_to_seconds(stamp):.9f} s after {ns_to_seconds(previous):.9f} s"
-            self._skip(kind, topic, stamp, why)
-            return False
-        last_stamp[topic] = stamp
-        return True
-
-    def _add(
-        self, b: _Builder, topic: str, ns: int, raw: bytes, last_stamp: dict[str, int]
-    ) -> None:
-        codec, topics = self.codec, self.codec.topics
-        try:
-            if topic in topics.imu_raw:
-                stamp, gyro, accel = codec.decode_imu_raw(raw)
-                if self._in_order(last_stamp, topic, stamp):
-                    b.imu[(stamp, topics.imu_raw[topic])] = (gyro, accel)
-            elif topic in topics.imu_mag:
-                stamp, mag = codec.decode_mag(raw)
-                if self._in_order(last_stamp, topic, stamp):
-                    b.mag[(stamp, topics.imu_mag[topic])] = mag
-            elif topic in topics.ahrs:
-                stamp, quat = codec.decode_ahrs(raw)
-                if self._in_order(last_stamp, topic, stamp):
-                    b.samples.append(codec.make_ahrs(stamp, topics.ahrs[topic], quat))
-            elif topic == "/motors/rest_lengths":
-                stamp, values = codec.decode_joint_state(raw, "actuated")
-                if self._in_order(last_stamp, topic, stamp):
-                    b.samples.append(codec.make_encoder(stamp, values))
-            elif topic == "/cables/lengths":
-                stamp, values = codec.decode_joint_state(raw, "all")
-                if self._in_order(last_stamp, topic, stamp):
-                    b.samples.append(codec.make_cable_lengths(stamp, values))
-            elif topic == "/uwb/ranges":
-                uwb = codec.decode_uwb(raw)
-                if self._in_order(last_stamp, topic, seconds_to_ns(uwb.t)):
-                    b.samples.append(uwb)
-            elif topic == "/contacts":
-                contact = codec.decode_contacts(raw)
-                if self._in_order(last_stamp, topic, seconds_to_ns(contact.t)):
-                    b.samples.append(contact)
-            elif topic == "/camera/color/image_raw":
-                stamp, image = codec.decode_image(raw, "color")
-                if self._in_order(last_stamp, topic, stamp):
-                    b.color[stamp] = image
-            elif topic == "/camera/depth/image_raw":
-                stamp, image = codec.decode_image(raw, "depth")
-                if self._in_order(last_stamp, topic, stamp):
-                    b.depth[stamp] = image
-            elif topic == "/ground_truth/state":
-                b.truth_state[self._stamp_of(raw)] = raw
-            elif topic == "/ground_truth/rod_poses":
-                b.truth_poses[self._stamp_of(raw)] = raw
-            elif topic == "/estimate/state":
-                b.estimate = codec.decode_estimate(raw)
-            # /estimate/rod_poses is for viewers; the state holds everything.
-        except MessageError as err:
-            self._skip("undecodable", topic, ns, str(err))
-
-    @staticmethod
-    def _stamp_of(raw: bytes) -> int:
-        """The header stamp (ns) of any message that starts with a std_msgs/Header."""
-        if len(raw) < 12:
-            raise MessageError(f"{len(raw)} bytes cannot hold a header")
-        return m.stamp_ns(
-            int.from_bytes(raw[4:8], "little", signed=True), int.from_bytes(raw[8:12], "little")
-        )
-
-    def _finish(self, b: _Builder, end_ns: int) -> BagPeriod:
-        codec = self.codec
-        samples = b.samples
-        for (stamp, rod), (gyro, accel) in b.imu.items():
-            samples.append(codec.make_imu(stamp, rod, gyro, accel, b.mag.pop((stamp, rod), None)))
-        for stamp in list(b.color):
-            if stamp in b.depth:
-                try:
-                    samples.append(codec.make_frame(stamp, b.color.pop(stamp), b.depth.pop(stamp)))
-                except MessageError as err:
-                    self._skip("undecodable", "/camera/depth/image_raw", stamp, str(err))
-        for stamp in b.color:
-            self._skip("unpaired", "/camera/color/image_raw", stamp, "no depth image")
-        for stamp in b.depth:
-            self._skip("unpaired", "/camera/depth/image_raw", stamp, "no colour image")
-        samples.sort(key=lambda s: (s.t, _KIND_ORDER[type(s)], getattr(s, "rod", 0)))
-        truth = None
-        for stamp in sorted(b.truth_state):
-            if stamp not in b.truth_poses:
-                self._skip("unpaired", "/ground_truth/state", stamp, "no rod poses")
-                continue
-            try:
-                truth = codec.decode_truth(b.truth_state[stamp], b.truth_poses[stamp])
-            except MessageError as err:
-                self._skip("undecodable", "/ground_truth/state", stamp, str(err))
-        return BagPeriod(samples, b.command, truth, b.estimate, ns_to_seconds(end_ns))
+    def _finish(self, assembler: SampleAssembler, end_ns: int, command: Any) -> BagPeriod:
+        out = assembler.take()
+        return BagPeriod(out.samples, command, out.truth, out.estimate, ns_to_seconds(end_ns))
 
 
 def read_run(

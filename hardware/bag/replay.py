@@ -152,5 +152,8 @@ class ReplayBackend:
                     image[v, u] = colour
         return image
 
+    def stop(self) -> None:
+        """Nothing to hold: a log cannot be moved."""
+
     def close(self) -> None:
         self.reader.close()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from typing import TYPE_CHECKING
 
 from tensegrity_gym.envs.roll_env import TensegrityEnv
@@ -45,6 +46,34 @@ def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
     raise ValueError(f"unknown estimator {name!r}; valid choices: {list(ESTIMATORS)}")
 
 
+_BACKEND_MEMBERS = (
+    "description",
+    "control_period",
+    "calibration",
+    "reset",
+    "step",
+    "stop",
+    "ground_truth",
+    "render",
+    "close",
+)
+
+
+def _is_backend(obj: object) -> bool:
+    """``isinstance(obj, Backend)`` without reading properties: on Python 3.11 the
+    protocol check calls them, and a driver's ``calibration`` raises before ``reset``."""
+    members = _BACKEND_MEMBERS
+    return all(_has_static(obj, name) for name in members)
+
+
+def _has_static(obj: object, name: str) -> bool:
+    try:
+        inspect.getattr_static(obj, name)
+    except AttributeError:
+        return False
+    return True
+
+
 def make_backend(
     description: RobotDescription,
     driver: str | Backend | None,
@@ -54,8 +83,9 @@ def make_backend(
     gui: bool,
     spawn_radius: float,
 ) -> Backend:
-    """The backend a ``driver`` names: None for PyBullet, ``"bag:PATH"`` to replay a
-    recorded bag, or a Backend object (its robot must be ``description``'s)."""
+    """The backend a ``driver`` names: None for PyBullet, ``"zenoh/tcp/HOST:PORT"`` for
+    a robot on the network (:class:`hardware.link.ZenohDriver`), ``"bag:PATH"`` to
+    replay a recorded bag, or a Backend object (its robot must be ``description``'s)."""
     if driver is None:
         from tensegrity_gym.sim.backend import SimBackend
 
@@ -67,19 +97,25 @@ def make_backend(
             spawn_radius=spawn_radius,
         )
     if isinstance(driver, str):
-        if not driver.startswith("bag:") or len(driver) == 4:
-            raise ValueError(
-                f"driver={driver!r}: expected None (PyBullet), 'bag:PATH' (replay a recorded "
-                "bag) or a Backend object"
-            )
-        from hardware.bag.replay import ReplayBackend
+        if driver.startswith("zenoh/"):
+            from hardware.link.driver import ZenohDriver
 
-        backend: Backend = ReplayBackend(driver[4:])
-    elif isinstance(driver, Backend):
+            backend: Backend = ZenohDriver(description, driver, control_period=control_period)
+        elif driver.startswith("bag:") and len(driver) > 4:
+            from hardware.bag.replay import ReplayBackend
+
+            backend = ReplayBackend(driver[4:])
+        else:
+            raise ValueError(
+                f"driver={driver!r}: expected None (PyBullet), 'zenoh/tcp/HOST:PORT' (a robot "
+                "on the network), 'bag:PATH' (replay a recorded bag) or a Backend object"
+            )
+    elif _is_backend(driver):
         backend = driver
     else:
         raise TypeError(
-            f"driver must be None, 'bag:PATH' or a Backend object; got {type(driver).__name__}"
+            "driver must be None, 'zenoh/...', 'bag:PATH' or a Backend object; "
+            f"got {type(driver).__name__}"
         )
     if backend.description.name != description.name:
         backend.close()
@@ -111,7 +147,8 @@ def make_roll_env(
         estimator: ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
             ``"icp"`` (the RGB-D tracker of papers/003; renders camera frames),
             ``"oracle"`` (ground truth, simulation only) or an Estimator object.
-        driver: ``None`` for the PyBullet simulation, ``"bag:PATH"`` to replay a recorded
+        driver: ``None`` for the PyBullet simulation, ``"zenoh/tcp/HOST:PORT"`` for a
+            robot (or the emulator) on the network, ``"bag:PATH"`` to replay a recorded
             bag (its commands drive it; the policy's actions are ignored), or a Backend
             object. The driver's robot must be this env's.
         record_dir: write every episode to a ROS 2 bag in this folder (``episode_000``,

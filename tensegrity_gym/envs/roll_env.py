@@ -6,6 +6,7 @@ goes to ``info`` (``com_true``, ``estimation_error``) and nowhere else.
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
@@ -20,6 +21,8 @@ if TYPE_CHECKING:
     from tensegrity_gym.tasks.roll import RollTask
 
 __all__ = ["TensegrityEnv"]
+
+logger = logging.getLogger(__name__)
 
 
 class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -110,6 +113,13 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[NDArray[np.float32], dict[str, Any]]:
         super().reset(seed=seed)
+        try:
+            return self._reset()
+        except BaseException:
+            self._stop_backend()
+            raise
+
+    def _reset(self) -> tuple[NDArray[np.float32], dict[str, Any]]:
         start = self.backend.reset(self.np_random)
         d = self.backend.description
         command = d.rest_lengths[d.actuated].copy()  # the motors hold their initial lengths
@@ -125,9 +135,26 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self._observation = self.task.observation(estimate)
         if self.render_mode == "human":
             self.render()
-        return self._observation, self._info(estimate)
+        info = self._info(estimate)
+        info.update(start.info)
+        return self._observation, info
 
     def step(
+        self, action: NDArray[np.float32]
+    ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        try:
+            return self._step(action)
+        except BaseException:  # Ctrl-C included: a robot holds its motors first
+            self._stop_backend()
+            raise
+
+    def _stop_backend(self) -> None:
+        try:
+            self.backend.stop()
+        except Exception:
+            logger.exception("the backend's stop() failed")
+
+    def _step(
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         if self._estimate is None or self._observation is None:

@@ -76,6 +76,11 @@ class Backend(Protocol):
         """A view of the scene for people, (height, width, 3)."""
         ...
 
+    def stop(self) -> None:
+        """Hold the motors where they are, now (a robot's safe state); the env calls it
+        when anything fails. A no-op where nothing can move (a log)."""
+        ...
+
     def close(self) -> None: ...
 
 

@@ -360,6 +360,9 @@ class SimBackend:
         rgb, _ = self.world.camera_image(cam, width, height, segments)
         return rgb
 
+    def stop(self) -> None:
+        """Nothing to hold: the simulated motors follow the last targets."""
+
     def close(self) -> None:
         if self._world is not None:
             self._world.close()

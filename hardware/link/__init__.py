@@ -1,0 +1,15 @@
+"""The real robot over the network: the wire (ROS 2 messages over Zenoh), the driver
+behind ``Backend``, command safety, and the robot emulator that stands in for it."""
+
+from hardware.link.driver import DriverTimeouts, ZenohDriver
+from hardware.link.safety import CommandLimiter, Watchdog
+from hardware.link.wire import LinkAddress, LinkError
+
+__all__ = [
+    "CommandLimiter",
+    "DriverTimeouts",
+    "LinkAddress",
+    "LinkError",
+    "Watchdog",
+    "ZenohDriver",
+]

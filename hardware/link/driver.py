@@ -1,0 +1,448 @@
+"""The hardware driver: a robot on the network as a :class:`Backend`.
+
+Each :meth:`ZenohDriver.step` clips the command (motor range, change per period),
+sends it, waits out the control period on the wall clock, and returns the samples that
+arrived meanwhile, decoded and checked (:class:`~hardware.bag.assembler.SampleAssembler`
+in ``"sort"`` mode): packets that overtook each other are sorted by the robot's stamps,
+late and duplicated ones dropped, and each kind counted in ``info``. Zenoh delivers on
+its own threads; the callback only queues the bytes, and all decoding happens in
+``step``, so a flood of messages cannot interleave with the env's state.
+
+Nothing waits forever: connecting, the robot's header (calibration) and the first
+samples each have a timeout; a period in which the robot stays quiet returns on time
+with ``info["link_stalled"]``, and a robot quiet for ``timeouts.link_lost`` makes
+``step`` send a stop command and raise :class:`LinkError`. ``close()``, an exception in
+the env, or the interpreter exiting send a stop command (hold the present rest lengths)
+first. A heartbeat goes out at a fixed rate from its own thread; the robot holds its
+motors when heartbeats stop.
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from hardware.bag import messages as m
+from hardware.bag.assembler import SampleAssembler
+from hardware.bag.codec import MessageError, RobotCodec
+from hardware.link.safety import CommandLimiter, check_fields
+from hardware.link.wire import (
+    COMMAND_TOPIC,
+    HEARTBEAT_TOPIC,
+    HEARTBEAT_TYPE,
+    LinkAddress,
+    LinkError,
+    open_session,
+)
+from tensegrity_gym.model.description import DescriptionError, loads_robot
+from tensegrity_gym.model.protocols import StepResult
+from tensegrity_gym.model.samples import EncoderSample, ImuSample, RgbdFrame
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.samples import GroundTruth, Sample
+
+__all__ = ["DriverTimeouts", "LinkError", "ZenohDriver"]
+
+log = logging.getLogger(__name__)
+
+_HEADER_TOPICS = ("/robot_description", "/tensegrity/calibration", "/camera/camera_info")
+RESET_PERIODS = 5
+"""Control periods at rest whose samples ``reset`` hands to the estimator."""
+
+
+@dataclass(frozen=True)
+class DriverTimeouts:
+    """Seconds the driver waits before it gives up on something."""
+
+    connect: float = 5.0
+    """Opening the link, and receiving the robot's calibration."""
+    first_samples: float = 5.0
+    """From connecting to the first encoder reading."""
+    stall: float = 0.5
+    """No sensor message for this long: the step returns flagged ``link_stalled``."""
+    link_lost: float = 3.0
+    """No sensor message for this long: stop command, then :class:`LinkError`."""
+    sensor_quiet: float = 1.0
+    """A stream that published and then went quiet this long is listed in ``info``."""
+    settle: float = 15.0
+    """``reset`` waits at most this long for the robot to come to rest."""
+
+    def __post_init__(self) -> None:
+        names = ("connect", "first_samples", "stall", "link_lost", "sensor_quiet", "settle")
+        check_fields(self, names, positive=True)
+        if self.link_lost <= self.stall:
+            raise ValueError(
+                f"DriverTimeouts.link_lost={self.link_lost} must exceed stall={self.stall}"
+            )
+
+
+class ZenohDriver:
+    """A robot that speaks the wire protocol of :mod:`hardware.link.wire`.
+
+    Args:
+        description: the robot.
+        address: ``"zenoh/tcp/HOST:PORT"`` (see :class:`LinkAddress`) or a LinkAddress.
+        control_period: seconds per :meth:`step`, on the wall clock.
+        timeouts: see :class:`DriverTimeouts`.
+        max_change: metres a command may move per period (see :class:`CommandLimiter`).
+        heartbeat_rate: heartbeats per second.
+        calibration: use this instead of the robot's ``/tensegrity/calibration``.
+        pair_wait: seconds half of a message pair (IMU data and magnetometer, colour
+            and depth) waits at the end of a period for its other half.
+        max_message_bytes: bigger messages are refused (counted as ``oversized``).
+        inbox_size: messages held between steps; beyond it the oldest are dropped
+            (counted as ``overflow``).
+        settle_speed: ``reset`` waits until no gyro reads more than this (rad/s).
+    """
+
+    def __init__(
+        self,
+        description: RobotDescription,
+        address: str | LinkAddress,
+        *,
+        control_period: float = 0.1,
+        timeouts: DriverTimeouts | None = None,
+        max_change: float | None = None,
+        heartbeat_rate: float = 20.0,
+        calibration: SensorCalibration | None = None,
+        pair_wait: float = 0.03,
+        max_message_bytes: int = 16 << 20,
+        inbox_size: int = 200_000,
+        settle_speed: float = 0.05,
+    ) -> None:
+        if not np.isfinite(control_period) or control_period <= 0:
+            raise ValueError(f"control_period={control_period!r} must be positive")
+        if not np.isfinite(heartbeat_rate) or heartbeat_rate <= 0:
+            raise ValueError(f"heartbeat_rate={heartbeat_rate!r} must be positive")
+        self.description = description
+        self.address = address if isinstance(address, LinkAddress) else LinkAddress.parse(address)
+        self.control_period = control_period
+        self.timeouts = timeouts or DriverTimeouts()
+        self.heartbeat_rate = heartbeat_rate
+        self.pair_wait = pair_wait
+        self.max_message_bytes = max_message_bytes
+        self.settle_speed = settle_speed
+        self.codec = RobotCodec(description)
+        self.limiter = CommandLimiter(description, control_period, max_change)
+        self._given_calibration = calibration
+        self._calibration: SensorCalibration | None = calibration
+        self._inbox: deque[tuple[str, bytes, float]] = deque(maxlen=inbox_size)
+        self._received = 0
+        self._oversized = 0
+        self._drained = 0
+        self._session: Any = None
+        self._stop_heartbeat = threading.Event()
+        self._heartbeat_thread: threading.Thread | None = None
+        self._skipped: Counter[str] = Counter()
+        self._assembler = SampleAssembler(self.codec, self._skip, order="sort")
+        self._header: dict[str, bytes] = {}
+        self._truth: GroundTruth | None = None
+        self._last_frame: RgbdFrame | None = None
+        self._encoders: NDArray[np.float64] | None = None
+        self._last_sensor = 0.0
+        self._last_by_stream: dict[str, float] = {}
+        self._deadline: float | None = None
+        self._closed = False
+        self.last_heartbeat: float | None = None
+        """Wall-clock time (s) the last heartbeat went out."""
+        atexit.register(self.close)
+
+    # ------------------------------------------------------------------ link
+
+    @property
+    def connected(self) -> bool:
+        return self._session is not None
+
+    def connect(self) -> None:
+        """Open the link (no-op if open); :class:`LinkError` after ``timeouts.connect``."""
+        if self._session is not None:
+            return
+        if self._closed:
+            raise LinkError(f"the driver for {self.address} was closed")
+        import zenoh
+
+        session = open_session(self.address, listen=False, timeout=self.timeouts.connect)
+        key = self.address.key
+        try:
+            self._subscriber = session.declare_subscriber(
+                self.address.everything, self._on_message, allowed_origin=zenoh.Locality.REMOTE
+            )
+            self._command_pub = session.declare_publisher(key(COMMAND_TOPIC))
+            self._heartbeat_pub = session.declare_publisher(key(HEARTBEAT_TOPIC))
+        except BaseException:
+            session.close()  # type: ignore[no-untyped-call]
+            raise
+        self._session = session
+        self._stop_heartbeat.clear()
+        self._heartbeat_thread = threading.Thread(
+            target=self._heartbeats, name="tensegrity-heartbeat", daemon=True
+        )
+        self._heartbeat_thread.start()
+
+    def _on_message(self, sample: Any) -> None:
+        # Zenoh's thread: queue the bytes and nothing else.
+        payload = sample.payload.to_bytes()
+        self._received += 1
+        if len(payload) > self.max_message_bytes:
+            self._oversized += 1
+            return
+        self._inbox.append((str(sample.key_expr), payload, time.monotonic()))
+
+    def _heartbeats(self) -> None:
+        header_type = self.codec.store.types[HEARTBEAT_TYPE]
+        time_type = self.codec.store.types["builtin_interfaces/msg/Time"]
+        period = 1.0 / self.heartbeat_rate
+        next_beat = time.monotonic()
+        while not self._stop_heartbeat.is_set():
+            sec, nanosec = m.stamp(time.time())
+            msg = header_type(stamp=time_type(sec=sec, nanosec=nanosec), frame_id="env")
+            try:
+                self._heartbeat_pub.put(bytes(self.codec.store.serialize_cdr(msg, HEARTBEAT_TYPE)))
+            except Exception:  # the session is closing
+                return
+            self.last_heartbeat = time.time()
+            next_beat += period
+            self._stop_heartbeat.wait(max(next_beat - time.monotonic(), 0.0))
+
+    def _skip(self, kind: str, topic: str, ns: int | None, why: str) -> None:
+        self._skipped[kind] += 1
+        if self._skipped[kind] == 1:
+            log.warning("robot link: %s on %s: %s (further ones are counted)", kind, topic, why)
+
+    # ------------------------------------------------------------------ receiving
+
+    def _drain(self) -> None:
+        """Decode everything queued since the last call."""
+        inbox, topics = self._inbox, self.codec.topics.types
+        while inbox:
+            key, raw, arrival = inbox.popleft()
+            self._drained += 1
+            topic = self.address.topic(key)
+            if topic is None or topic not in topics:
+                self._skip("unknown_topic", key, None, "not in the robot's topic table")
+                continue
+            if topic in _HEADER_TOPICS:
+                self._header[topic] = raw
+                continue
+            if topic in (COMMAND_TOPIC, HEARTBEAT_TOPIC):
+                continue  # another controller on the link
+            self._assembler.add(topic, raw, arrival)
+            self._last_sensor = arrival
+            self._last_by_stream[topic] = arrival
+
+    def _collect(self, now: float) -> list[Sample]:
+        """Samples complete by ``now``; remembers the newest truth, frame and encoders."""
+        self._drain()
+        out = self._assembler.take(now, self.pair_wait)
+        if out.truth is not None:
+            self._truth = out.truth
+        for sample in out.samples:
+            if isinstance(sample, EncoderSample):
+                self._encoders = sample.rest_lengths
+            elif isinstance(sample, RgbdFrame):
+                self._last_frame = sample
+        return out.samples
+
+    @property
+    def dropped(self) -> int:
+        """Messages lost on this side: the inbox overflowed, or too big."""
+        overflow = self._received - self._oversized - self._drained - len(self._inbox)
+        return max(overflow, 0) + self._oversized
+
+    def _counts(self) -> dict[str, int]:
+        counts = dict(self._skipped)
+        counts["reordered"] = self._assembler.reordered
+        counts["oversized"] = self._oversized
+        counts["overflow"] = self.dropped - self._oversized
+        return counts
+
+    def _wait_for(self, what: str, ready: Any, timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            self._collect(time.monotonic())
+            if ready():
+                return
+            if time.monotonic() >= deadline:
+                raise LinkError(
+                    f"robot at {self.address}: no {what} within {timeout:g} s "
+                    f"({self._received} messages received)"
+                )
+            time.sleep(0.01)
+
+    # ------------------------------------------------------------------ Backend
+
+    @property
+    def calibration(self) -> SensorCalibration:
+        if self._calibration is None:
+            raise RuntimeError("call reset() before reading the calibration")
+        return self._calibration
+
+    def _read_header(self) -> None:
+        raw = self._header.get("/robot_description")
+        if raw is not None:
+            try:
+                text = self.codec.deserialize(raw, m.STRING).data
+                theirs = loads_robot(text, f"{self.address}:/robot_description")
+            except (MessageError, DescriptionError) as err:
+                raise LinkError(f"robot at {self.address}: bad /robot_description: {err}") from None
+            if theirs.name != self.description.name or theirs.n_cables != self.description.n_cables:
+                raise LinkError(
+                    f"the robot at {self.address} is {theirs.name!r} ({theirs.n_cables} cables); "
+                    f"this env is for {self.description.name!r}"
+                )
+        if self._given_calibration is None:
+            try:
+                self._calibration = self.codec.decode_calibration(
+                    self._header["/tensegrity/calibration"], self._header.get("/camera/camera_info")
+                )
+            except MessageError as err:
+                raise LinkError(f"robot at {self.address}: bad calibration: {err}") from None
+
+    def reset(self, rng: np.random.Generator) -> StepResult:
+        """Connect if needed, wait for the robot's calibration and first samples, bring
+        the motors to the description's rest lengths, and wait for the robot to come to
+        rest. Nothing is moved by hand: the robot stays where it is. Returns the samples
+        of the last :data:`RESET_PERIODS` control periods."""
+        self.connect()
+        self._assembler = SampleAssembler(self.codec, self._skip, order="sort")
+        self._skipped.clear()
+        self._truth, self._encoders = None, None
+        self._last_by_stream.clear()
+        t = self.timeouts
+        wanted = "/tensegrity/calibration" if self._given_calibration is None else None
+        self._wait_for(
+            f"{wanted or 'robot description'} message",
+            lambda: wanted is None or wanted in self._header,
+            t.connect,
+        )
+        self._read_header()
+        self._wait_for("encoder reading", lambda: self._encoders is not None, t.first_samples)
+        self.limiter.reset(self._encoders)
+        d = self.description
+        nominal = d.rest_lengths[d.actuated]
+        self._deadline = None
+        start = time.monotonic()
+        settled = False
+        # The estimator starts from the last RESET_PERIODS periods at rest: enough UWB
+        # rounds to place the robot even when packets are lost.
+        recent: deque[list[Sample]] = deque(maxlen=RESET_PERIODS)
+        while time.monotonic() - start < t.settle:
+            result = self._period(self.limiter(nominal))
+            recent.append(list(result.samples))
+            if len(recent) == RESET_PERIODS and self._at_rest(recent[-1], nominal):
+                settled = True
+                break
+        samples = [s for period in recent for s in period]
+        if not settled:
+            log.warning(
+                "robot at %s did not come to rest within %.1f s; starting anyway",
+                self.address,
+                t.settle,
+            )
+        return StepResult(samples, info={"robot_settled": settled, **self._link_info(False)})
+
+    def _at_rest(self, samples: list[Sample], nominal: NDArray[np.float64]) -> bool:
+        gyros = [np.linalg.norm(s.gyro) for s in samples if isinstance(s, ImuSample)]
+        if not gyros or self._encoders is None:
+            return False
+        at_length = np.allclose(self._encoders, nominal, atol=2e-3)
+        return bool(at_length and max(gyros) < self.settle_speed)
+
+    def step(self, targets: NDArray[np.float64]) -> StepResult:
+        if self._deadline is None:
+            raise RuntimeError("call reset() before step()")
+        return self._period(self.limiter(targets))
+
+    def _period(self, command: NDArray[np.float64]) -> StepResult:
+        """Send ``command``, wait out the period, return what arrived."""
+        now = time.monotonic()
+        overrun = self._deadline is not None and now > self._deadline + self.control_period
+        if self._deadline is None or overrun:
+            self._deadline = now
+        self._deadline += self.control_period
+        self._send_command(command)
+        while (left := self._deadline - time.monotonic()) > 0:
+            time.sleep(min(left, 0.02))
+            self._drain()  # keep the inbox short and decode while waiting
+        end = time.monotonic()
+        samples = self._collect(end)
+        quiet = end - self._last_sensor
+        if quiet > self.timeouts.link_lost:
+            self.stop()
+            raise LinkError(
+                f"robot at {self.address}: no sensor message for {quiet:.1f} s "
+                f"(timeouts.link_lost = {self.timeouts.link_lost:g} s); motors told to hold"
+            )
+        info = self._link_info(overrun)
+        info["link_stalled"] = quiet > self.timeouts.stall
+        info["link_latency_s"] = time.monotonic() - end
+        return StepResult(samples, info=info, command=command)
+
+    def _link_info(self, overrun: bool) -> dict[str, Any]:
+        now = time.monotonic()
+        quiet = sorted(
+            s for s, t in self._last_by_stream.items() if now - t > self.timeouts.sensor_quiet
+        )
+        return {
+            "link_stalled": False,
+            "link_overrun": overrun,
+            "link_quiet_topics": quiet,
+            "link_counts": self._counts(),
+            "command_clipped": self.limiter.clipped,
+        }
+
+    def _send_command(self, targets: NDArray[np.float64]) -> None:
+        _, raw = self.codec.encode_command(time.time(), targets)
+        self._command_pub.put(raw)
+
+    def stop(self) -> None:
+        """Hold the motors where they are: command the present rest lengths."""
+        if self._session is None:
+            return
+        hold = self._encoders if self._encoders is not None else self.limiter.previous
+        if hold is None:
+            return
+        hold = np.clip(hold, self.limiter.lo, self.limiter.hi)
+        try:
+            self._send_command(hold)
+        except Exception as err:  # the session is gone: the robot's watchdog holds
+            log.warning("robot link: the stop command could not be sent: %s", err)
+        self.limiter.previous = hold
+
+    def ground_truth(self) -> GroundTruth | None:
+        """The newest ground truth the robot's side published (motion capture), if any."""
+        return self._truth
+
+    def render(self, width: int, height: int) -> NDArray[np.uint8]:
+        """The newest camera frame scaled to (height, width, 3); black without one."""
+        frame = self._last_frame
+        if frame is None:
+            return np.zeros((height, width, 3), dtype=np.uint8)
+        rows = np.arange(height) * frame.rgb.shape[0] // height
+        cols = np.arange(width) * frame.rgb.shape[1] // width
+        return np.ascontiguousarray(frame.rgb[rows][:, cols])
+
+    def close(self) -> None:
+        """Stop the motors, the heartbeats and the link (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        atexit.unregister(self.close)
+        self.stop()
+        self._stop_heartbeat.set()
+        if self._heartbeat_thread is not None:
+            self._heartbeat_thread.join(timeout=1.0)
+        session, self._session = self._session, None
+        if session is not None:
+            session.close()

@@ -1,0 +1,476 @@
+"""A stand-in for the real robot: the simulated robot served over the robot wire in real
+time, with the timing faults of a real network and real sensors.
+
+The emulator steps the PyBullet robot in ticks of 10 ms of wall-clock time, applies the
+newest rest-length command, and publishes every sample as its ROS 2 message, stamped
+with the robot's clock (wall-clock time, as a robot synchronised by NTP or PTP stamps).
+Faults (:class:`FaultModel`) act on the sensor messages: latency and jitter, packet
+loss, reordering, and dropouts in which one sensor stream goes quiet for a while.
+Like a robot's firmware, it holds its motors (targets = present rest lengths) before the
+first heartbeat and whenever heartbeats stop for longer than the watchdog timeout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import heapq
+import logging
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from hardware.bag.codec import MessageError, RobotCodec
+from hardware.link.safety import Watchdog, check_fields
+from hardware.link.wire import COMMAND_TOPIC, HEARTBEAT_TOPIC, LinkAddress, LinkError, open_session
+from tensegrity_gym.model.samples import UwbRangeSample, ns_to_seconds
+from tensegrity_gym.sim.backend import SimBackend
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.samples import Sample
+
+__all__ = ["Emulator", "EmulatorStats", "FaultModel"]
+
+log = logging.getLogger(__name__)
+
+TICK = 0.01
+"""Seconds of robot time per emulator tick (commands take effect at tick boundaries)."""
+HEADER_PERIOD = 1.0
+"""Seconds between republications of the description, calibration and camera info."""
+
+
+@dataclass(frozen=True)
+class FaultModel:
+    """Timing faults applied to each sensor message.
+
+    Attributes:
+        latency: fixed delay (s) before a message is published.
+        jitter: extra delay drawn uniformly from [0, jitter] (s), per message.
+        loss: probability that a message is never published.
+        reorder: probability that a message is held back by ``reorder_delay`` more, so
+            that later ones overtake it.
+        reorder_delay: seconds a reordered message is held back.
+        dropout_rate: per stream and second, the rate at which a stream (one rod's IMU,
+            the encoders, the UWB, ...) goes quiet.
+        dropout_duration: seconds a dropout lasts.
+    """
+
+    latency: float = 0.0
+    jitter: float = 0.0
+    loss: float = 0.0
+    reorder: float = 0.0
+    reorder_delay: float = 0.02
+    dropout_rate: float = 0.0
+    dropout_duration: float = 0.5
+
+    def __post_init__(self) -> None:
+        names = ("latency", "jitter", "reorder_delay", "dropout_rate", "dropout_duration")
+        check_fields(self, names, positive=False)
+        for name in ("loss", "reorder"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise ValueError(f"FaultModel.{name}={value!r} must be a probability in [0, 1]")
+
+    @property
+    def delays(self) -> bool:
+        return self.latency > 0 or self.jitter > 0 or self.reorder > 0
+
+
+@dataclass
+class EmulatorStats:
+    ticks: int = 0
+    published: int = 0
+    lost: int = 0
+    reordered: int = 0
+    dropped_in_dropout: int = 0
+    commands: int = 0
+    bad_commands: int = 0
+    heartbeats: int = 0
+    watchdog_trips: int = 0
+    overruns: int = 0
+    """Ticks that started late because the previous one took longer than a tick."""
+
+
+SENSOR_TOPICS = (
+    "/motors/rest_lengths",
+    "/cables/lengths",
+    "/uwb/ranges",
+    "/contacts",
+    "/camera/color/image_raw",
+    "/camera/depth/image_raw",
+)
+"""Sensor topics besides the per-rod IMU topics."""
+
+
+def _stream(topic: str) -> str:
+    """The sensor stream a topic belongs to: a rod's IMU topics are one stream, and so
+    are the camera's two images; a dropout silences a whole stream."""
+    parts = topic.strip("/").split("/")
+    if parts[0] == "camera":
+        return "camera"
+    return parts[0] if len(parts) > 2 and parts[1] == "imu" else topic
+
+
+class Emulator:
+    """Serves the simulated robot at ``address`` (see the module docstring).
+
+    Args:
+        description: the robot.
+        address: where to listen (``LinkAddress``; its prefix namespaces the topics).
+        faults: timing faults on the sensor messages.
+        seed: seeds the simulation's randomness and the faults.
+        camera: render and publish RGB-D frames at the camera's rate.
+        truth: publish ground truth (as a motion-capture system would) every tick.
+        watchdog_timeout: seconds without a heartbeat after which the motors hold.
+    """
+
+    def __init__(
+        self,
+        description: RobotDescription,
+        address: LinkAddress,
+        *,
+        faults: FaultModel | None = None,
+        seed: int = 0,
+        camera: bool = False,
+        truth: bool = True,
+        watchdog_timeout: float = 0.15,
+    ) -> None:
+        self.description = description
+        self.address = address
+        self.faults = faults or FaultModel()
+        self.camera = camera
+        self.truth = truth
+        self.codec = RobotCodec(description)
+        self.stats = EmulatorStats()
+        self.watchdog = Watchdog(watchdog_timeout)
+        self._rng = np.random.default_rng(seed)
+        self._fault_rng = np.random.default_rng([seed, 1])
+        self._backend = SimBackend(description, control_period=TICK)
+        self._lock = threading.Lock()
+        self._command: NDArray[np.float64] | None = None
+        self._fresh_command = False  # a command came since the watchdog last tripped
+        self._hold: NDArray[np.float64] | None = None
+        self._stop = threading.Event()
+        self._queue: list[tuple[float, int, str, bytes]] = []
+        self._queue_ready = threading.Condition()
+        self._seq = 0
+        self._dropout_until: dict[str, float] = {}
+        self._session: Any = None
+        self._publishers: dict[str, Any] = {}
+        self._epoch = 0.0
+        topics = self.codec.topics
+        sensor_topics = {*topics.imu_raw, *topics.imu_mag, *topics.ahrs, *SENSOR_TOPICS}
+        self._streams = sorted({_stream(t) for t in sensor_topics})
+
+    # ------------------------------------------------------------------ wire
+
+    def _publish_now(self, topic: str, raw: bytes) -> None:
+        pub = self._publishers.get(topic)
+        if pub is None:
+            pub = self._session.declare_publisher(self.address.key(topic))
+            self._publishers[topic] = pub
+        pub.put(raw)
+        self.stats.published += 1
+
+    def _send(self, topic: str, raw: bytes, now: float, faulty: bool = True) -> None:
+        f = self.faults
+        if faulty:
+            rng = self._fault_rng
+            if self._dropout_until.get(_stream(topic), -1.0) > now:
+                self.stats.dropped_in_dropout += 1
+                return
+            if f.loss and rng.random() < f.loss:
+                self.stats.lost += 1
+                return
+            if f.delays:
+                delay = f.latency + f.jitter * rng.random()
+                if f.reorder and rng.random() < f.reorder:
+                    delay += f.reorder_delay
+                    self.stats.reordered += 1
+                with self._queue_ready:
+                    heapq.heappush(self._queue, (now + delay, self._seq, topic, raw))
+                    self._seq += 1
+                    self._queue_ready.notify()
+                return
+        self._publish_now(topic, raw)
+
+    def _sender(self) -> None:
+        """Publishes delayed messages when they fall due."""
+        while not self._stop.is_set():
+            with self._queue_ready:
+                if not self._queue:
+                    self._queue_ready.wait(0.05)
+                    continue
+                due = self._queue[0][0] - time.monotonic()
+                if due > 0:
+                    self._queue_ready.wait(due)
+                    continue
+                _, _, topic, raw = heapq.heappop(self._queue)
+            try:
+                self._publish_now(topic, raw)
+            except Exception:  # the session is closing
+                if not self._stop.is_set():
+                    raise
+
+    def _on_command(self, sample: Any) -> None:
+        raw = sample.payload.to_bytes()
+        try:
+            _, targets = self.codec.decode_joint_state(raw, "actuated")
+        except MessageError as err:
+            self.stats.bad_commands += 1
+            log.warning("emulator: a command was refused: %s", err)
+            return
+        lo, hi, _ = self.description.motor_limits
+        with self._lock:
+            self._command = np.clip(targets, lo, hi)  # firmware limits, whatever is sent
+            self._fresh_command = True
+            self.stats.commands += 1
+
+    def _on_heartbeat(self, _sample: Any) -> None:
+        with self._lock:
+            self.watchdog.feed(time.monotonic())
+            self.stats.heartbeats += 1
+
+    # ------------------------------------------------------------------ running
+
+    def start(self) -> None:
+        """Listen, settle the robot, and publish its header; :meth:`run` then serves."""
+        self._session = open_session(self.address, listen=True, timeout=5.0)
+        key = self.address.key
+        self._subscribers = [
+            self._session.declare_subscriber(key(COMMAND_TOPIC), self._on_command),
+            self._session.declare_subscriber(key(HEARTBEAT_TOPIC), self._on_heartbeat),
+        ]
+        result = self._backend.reset(self._rng)
+        self._epoch = time.time() - self._backend.world.time
+        self._header = self.codec.encode_header(
+            self._backend.calibration, {"control_period": TICK, "emulated": True}, self._epoch
+        )
+        self._publish_header()
+        now = time.monotonic()
+        for sample in result.samples:
+            self._publish_sample(sample, now)
+        self._sender_thread = threading.Thread(target=self._sender, daemon=True)
+        self._sender_thread.start()
+
+    def _publish_header(self) -> None:
+        for topic, raw in self._header:
+            self._publish_now(topic, raw)
+
+    def _stamped(self, sample: Sample) -> Sample:
+        """The sample stamped with the robot's clock."""
+        t = sample.t + self._epoch
+        if isinstance(sample, UwbRangeSample):
+            return dataclasses.replace(sample, t=t, times=sample.times + self._epoch)
+        return dataclasses.replace(sample, t=t)
+
+    def _publish_sample(self, sample: Sample, now: float) -> None:
+        for topic, raw in self.codec.encode_sample(self._stamped(sample)):
+            self._send(topic, raw, now)
+
+    def _targets(self, now: float) -> NDArray[np.float64]:
+        """The motors' targets this tick: the newest command, or hold where they are
+        before the first heartbeat and after heartbeats stop (until a new command)."""
+        with self._lock:
+            tripped = self.watchdog.tripped(now)
+            if tripped and self._fresh_command:
+                self._fresh_command = False
+                if self.stats.heartbeats:
+                    self.stats.watchdog_trips += 1
+                    log.warning(
+                        "emulator: no heartbeat for %.2f s; holding the motors",
+                        self.watchdog.timeout,
+                    )
+            command = self._command if self._fresh_command and not tripped else None
+        if command is not None:
+            self._hold = None
+            return command
+        if self._hold is None:
+            self._hold = self.rest_lengths
+        return self._hold
+
+    def _start_dropouts(self, now: float) -> None:
+        f = self.faults
+        if not f.dropout_rate:
+            return
+        for stream in self._streams:
+            if self._fault_rng.random() < f.dropout_rate * TICK:
+                self._dropout_until[stream] = now + f.dropout_duration
+
+    def tick(self) -> None:
+        """One tick: command or hold, step the robot, publish what the sensors saw."""
+        now = time.monotonic()
+        self._start_dropouts(now)
+        backend = self._backend
+        if self.camera:
+            rate = self.description.sensors.camera.rate
+            t_next = backend.world.time + TICK
+            backend.camera = int(t_next * rate + 1e-9) > int(backend.world.time * rate + 1e-9)
+        result = backend.step(self._targets(now))
+        if result.diverged:
+            log.error("emulator: the simulation diverged; resetting the robot")
+            backend.reset(self._rng)
+            return
+        for sample in result.samples:
+            self._publish_sample(sample, now)
+        if self.truth:
+            truth = backend.ground_truth()
+            if truth is not None:
+                truth = dataclasses.replace(truth, t=truth.t + self._epoch)
+                for topic, raw in self.codec.encode_truth(truth):
+                    self._send(topic, raw, now, faulty=False)
+        self.stats.ticks += 1
+
+    def run(self, duration: float | None = None) -> None:
+        """Serve in real time until :meth:`stop` (or ``duration`` seconds)."""
+        start = time.monotonic()
+        next_tick = start
+        next_header = start + HEADER_PERIOD
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if duration is not None and now - start >= duration:
+                break
+            if now >= next_header:
+                self._publish_header()
+                next_header += HEADER_PERIOD
+            self.tick()
+            next_tick += TICK
+            lag = time.monotonic() - next_tick
+            if lag > 0:
+                self.stats.overruns += 1
+                if lag > 0.1:  # far behind: the robot's time runs slow rather than race
+                    next_tick = time.monotonic()
+            else:
+                self._stop.wait(-lag)
+
+    def stop(self) -> None:
+        self._stop.set()
+        with self._queue_ready:
+            self._queue_ready.notify_all()
+
+    def close(self) -> None:
+        self.stop()
+        thread = getattr(self, "_sender_thread", None)
+        if thread is not None:
+            thread.join(timeout=1.0)
+        if self._session is not None:
+            self._session.close()
+            self._session = None
+        self._backend.close()
+
+    @property
+    def rest_lengths(self) -> NDArray[np.float64]:
+        """The motors' present rest lengths (m), (m,)."""
+        return np.asarray(self._backend.world.rest_lengths)[self.description.actuated].copy()
+
+    @property
+    def robot_time(self) -> float:
+        return ns_to_seconds(self._backend.world.time_ns) + self._epoch
+
+
+# ---------------------------------------------------------------------- command line
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of ``tensegrity-gym emulate`` (and ``python -m hardware.link.emulator``)."""
+    parser.add_argument("--robot", default="three_bar", help="robot preset or YAML")
+    parser.add_argument("--listen", default="tcp/127.0.0.1:7447", help="Zenoh endpoint")
+    parser.add_argument("--prefix", default="", help="topic namespace (Zenoh key prefix)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--latency", type=float, default=0.0, help="seconds added to a message")
+    parser.add_argument("--jitter", type=float, default=0.0, help="up to this many seconds more")
+    parser.add_argument("--loss", type=float, default=0.0, help="chance a message is lost")
+    parser.add_argument("--reorder", type=float, default=0.0, help="chance a message is held back")
+    parser.add_argument("--dropout-rate", type=float, default=0.0, help="dropouts per stream per s")
+    parser.add_argument("--dropout-duration", type=float, default=0.5, help="seconds per dropout")
+    parser.add_argument("--imu-rate", type=float, default=None, help="IMU rate (Hz) to emulate")
+    parser.add_argument("--camera", action="store_true", help="render and publish RGB-D frames")
+    parser.add_argument("--no-truth", action="store_true", help="publish no ground truth")
+    parser.add_argument(
+        "--watchdog",
+        type=float,
+        default=0.15,
+        help="seconds without a heartbeat after which the motors hold",
+    )
+    parser.add_argument("--duration", type=float, default=None, help="stop after this many s")
+
+
+def run_from_args(args: argparse.Namespace) -> int:
+    """Serve until SIGINT or SIGTERM (or ``--duration``); print ``ready ADDRESS`` once
+    listening. Returns the process exit status."""
+    from tensegrity_gym.model.description import DescriptionError, load_robot
+
+    try:
+        query = f"?prefix={args.prefix}" if args.prefix else ""
+        address = LinkAddress.parse(f"zenoh/{args.listen}{query}")
+        description = load_robot(args.robot)
+        if args.imu_rate is not None:
+            if not args.imu_rate > 0:
+                raise ValueError(f"--imu-rate {args.imu_rate} must be positive")
+            s = description.sensors
+            imu = dataclasses.replace(s.imu, rate=float(args.imu_rate))
+            description = dataclasses.replace(description, sensors=dataclasses.replace(s, imu=imu))
+        faults = FaultModel(
+            latency=args.latency,
+            jitter=args.jitter,
+            loss=args.loss,
+            reorder=args.reorder,
+            dropout_rate=args.dropout_rate,
+            dropout_duration=args.dropout_duration,
+        )
+        emulator = Emulator(
+            description,
+            address,
+            faults=faults,
+            seed=args.seed,
+            camera=args.camera,
+            truth=not args.no_truth,
+            watchdog_timeout=args.watchdog,
+        )
+    except (ValueError, DescriptionError) as err:
+        log.error("%s", err)
+        return 2
+
+    def stop(signum: int, _frame: object) -> None:
+        log.info("emulator: %s; stopping", signal.Signals(signum).name)
+        emulator.stop()
+
+    signal.signal(signal.SIGINT, stop)
+    signal.signal(signal.SIGTERM, stop)
+    try:
+        emulator.start()
+    except LinkError as err:
+        log.error("%s", err)
+        emulator.close()
+        return 1
+    log.info("emulating %s at %s", description.name, address)
+    sys.stdout.write(f"ready {address}\n")
+    sys.stdout.flush()
+    try:
+        emulator.run(args.duration)
+    finally:
+        emulator.close()
+    log.info("emulator stopped: %s", emulator.stats)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m hardware.link.emulator", description="Serve the simulated robot."
+    )
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    return run_from_args(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
