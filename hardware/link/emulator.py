@@ -334,6 +334,7 @@ class Emulator:
         start = time.monotonic()
         next_tick = start
         next_header = start + HEADER_PERIOD
+        self._sync_clock()
         while not self._stop.is_set():
             now = time.monotonic()
             if duration is not None and now - start >= duration:
@@ -346,10 +347,18 @@ class Emulator:
             lag = time.monotonic() - next_tick
             if lag > 0:
                 self.stats.overruns += 1
-                if lag > 0.1:  # far behind: the robot's time runs slow rather than race
+                if lag > 0.1:  # far behind: skip the lost ticks rather than race
                     next_tick = time.monotonic()
+                    self._sync_clock()
             else:
                 self._stop.wait(-lag)
+
+    def _sync_clock(self) -> None:
+        """Stamps are wall-clock time, as a robot's clock is. A tick computes the next
+        TICK seconds of the robot, which are stamped as the TICK just past, so that no
+        sample is published before its stamp. Where the simulation fell behind, the
+        clock jumps forward (never back)."""
+        self._epoch = max(self._epoch, time.time() - self._backend.world.time - TICK)
 
     def stop(self) -> None:
         self._stop.set()
