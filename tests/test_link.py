@@ -307,9 +307,19 @@ def test_fuzzed_messages_are_refused_and_counted(
         messages.append((topic, raw))
     samples = _feed(driver, messages)  # must not raise
     assert _all_finite(samples)
-    counts = driver._counts()
+    counts = driver.link_counts()
     intact = sum(how == "intact" for _, how, _, _ in picks)
     assert len(samples) + sum(counts.values()) + len(driver._header) <= 2 * len(picks) + intact
+    driver.close()
+
+
+def test_an_overflowing_inbox_drops_the_oldest_and_counts() -> None:
+    driver = ZenohDriver(THREE_BAR, "zenoh/tcp/127.0.0.1:7447", inbox_size=10)
+    codec = driver.codec
+    messages = [("/motors/rest_lengths", _encoder_raw(codec, 0.01 * (k + 1))) for k in range(25)]
+    samples = _feed(driver, messages)
+    assert [round(s.t, 2) for s in samples] == [round(0.01 * k, 2) for k in range(16, 26)]
+    assert driver.link_counts()["overflow"] == 15 and driver.dropped == 15
     driver.close()
 
 
@@ -350,7 +360,7 @@ def test_poisoned_messages_are_refused_without_memory_blowup(field: str) -> None
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert samples == []
-    counts = driver._counts()
+    counts = driver.link_counts()
     assert counts.get("undecodable", 0) + counts["oversized"] >= (field != "huge_string")
     assert peak < 64 << 20, f"decoding one bad message took {peak / 2**20:.0f} MiB"
     driver.close()
@@ -385,7 +395,7 @@ def test_ukf_rolls_the_emulated_robot_as_well_as_in_process(emulator: EmulatorPr
     env = gym.make(HW_ID, driver=emulator.address, estimator="ukf")
     try:
         remote, rolled = _gait_errors(env, steps, seed=0)
-        counts = env.unwrapped.backend._counts()  # type: ignore[attr-defined]
+        counts = env.unwrapped.backend.link_counts()  # type: ignore[attr-defined]
     finally:
         env.close()
     local_env = gym.make("tensegrity_gym/ThreeBarRoll-v0", estimator="ukf")
@@ -523,3 +533,29 @@ def test_a_driver_run_records_to_a_bag(emulator: EmulatorProcess, tmp_path: Any)
     kinds = {type(s).__name__ for step in run.steps for s in step.samples}
     assert {"ImuSample", "EncoderSample", "UwbRangeSample"} <= kinds
     assert all(step.truth is not None for step in run.steps)
+
+
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_the_emulator_starts_in_seconds_and_stops_cleanly(signal_name: str) -> None:
+    import signal
+
+    process = EmulatorProcess("three_bar")
+    t = time.monotonic()
+    process.start()
+    started = time.monotonic() - t
+    assert started < 5.0  # about two seconds here, imports and settling included
+    assert process.process is not None
+    process.process.send_signal(getattr(signal, signal_name))
+    assert process.process.wait(timeout=5.0) == 0
+    process.stop()
+
+
+@pytest.mark.slow
+def test_thirty_minutes_of_emulated_operation_without_growth() -> None:
+    from agents.bench_link import bench_soak
+
+    out = bench_soak(30.0)
+    assert out["stalled_steps"] == 0
+    assert out["skipped_or_dropped"]["overflow"] == 0
+    assert out["env_rss_growth_mb"] < 20.0 and out["emulator_rss_growth_mb"] < 20.0, out
+    assert out["p99_latency_change_ms"] < 2.0, out

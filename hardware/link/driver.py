@@ -140,7 +140,7 @@ class ZenohDriver:
         self._inbox: deque[tuple[str, bytes, float]] = deque(maxlen=inbox_size)
         self._received = 0
         self._oversized = 0
-        self._drained = 0
+        self._overflow = 0
         self._session: Any = None
         self._stop_heartbeat = threading.Event()
         self._heartbeat_thread: threading.Thread | None = None
@@ -197,6 +197,8 @@ class ZenohDriver:
         if len(payload) > self.max_message_bytes:
             self._oversized += 1
             return
+        if len(self._inbox) == self._inbox.maxlen:
+            self._overflow += 1  # the append below pushes out the oldest
         self._inbox.append((str(sample.key_expr), payload, time.monotonic()))
 
     def _heartbeats(self) -> None:
@@ -227,7 +229,6 @@ class ZenohDriver:
         inbox, topics = self._inbox, self.codec.topics.types
         while inbox:
             key, raw, arrival = inbox.popleft()
-            self._drained += 1
             topic = self.address.topic(key)
             if topic is None or topic not in topics:
                 self._skip("unknown_topic", key, None, "not in the robot's topic table")
@@ -255,16 +256,21 @@ class ZenohDriver:
         return out.samples
 
     @property
-    def dropped(self) -> int:
-        """Messages lost on this side: the inbox overflowed, or too big."""
-        overflow = self._received - self._oversized - self._drained - len(self._inbox)
-        return max(overflow, 0) + self._oversized
+    def received(self) -> int:
+        """Messages received on the link since the driver was made."""
+        return self._received
 
-    def _counts(self) -> dict[str, int]:
+    @property
+    def dropped(self) -> int:
+        """Messages lost on this side: the inbox overflowed, or they were too big."""
+        return self._overflow + self._oversized
+
+    def link_counts(self) -> dict[str, int]:
+        """Messages skipped or dropped since ``reset``, by kind, and those sorted."""
         counts = dict(self._skipped)
         counts["reordered"] = self._assembler.reordered
         counts["oversized"] = self._oversized
-        counts["overflow"] = self.dropped - self._oversized
+        counts["overflow"] = self._overflow
         return counts
 
     def _wait_for(self, what: str, ready: Any, timeout: float) -> None:
@@ -386,7 +392,9 @@ class ZenohDriver:
             )
         info = self._link_info(overrun)
         info["link_stalled"] = quiet > self.timeouts.stall
-        info["link_latency_s"] = time.monotonic() - end
+        info["link_latency_s"] = time.monotonic() - self._deadline  # what the driver adds
+        # How old the freshest sample is, robot clock against ours (synchronised clocks).
+        info["link_newest_age_s"] = time.time() - samples[-1].t if samples else None
         return StepResult(samples, info=info, command=command)
 
     def _link_info(self, overrun: bool) -> dict[str, Any]:
@@ -398,7 +406,7 @@ class ZenohDriver:
             "link_stalled": False,
             "link_overrun": overrun,
             "link_quiet_topics": quiet,
-            "link_counts": self._counts(),
+            "link_counts": self.link_counts(),
             "command_clipped": self.limiter.clipped,
         }
 

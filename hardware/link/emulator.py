@@ -318,6 +318,7 @@ class Emulator:
         if result.diverged:
             log.error("emulator: the simulation diverged; resetting the robot")
             backend.reset(self._rng)
+            self._sync_clock()  # the simulation's time restarts at 0; stamps go on
             return
         for sample in result.samples:
             self._publish_sample(sample, now)
