@@ -141,6 +141,7 @@ def _record(args: argparse.Namespace) -> int:
             steps=args.steps,
             seed=args.seed,
             estimator=args.estimator,
+            driver=args.driver,
         )
     except KeyboardInterrupt:
         log.warning("interrupted: the bag being written was closed and is complete so far")
@@ -286,6 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--steps", type=int, default=None, help="control steps per episode")
     rec.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
     rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
     rec.add_argument("--out", required=True, help="folder for the bags (episode_000, ...)")
     rec.set_defaults(func=_record)
 

@@ -83,13 +83,17 @@ def record(
     seed: int = 0,
     estimator: str = "ukf",
     flush_period: float = 1.0,
+    driver: str | None = None,
 ) -> list[Path]:
     """Run ``episodes`` episodes of ``policy`` on ``env_id`` and write one bag each into
-    ``out``. Returns the bags written. An interruption (Ctrl-C, SIGTERM) closes the
-    current bag properly before it propagates."""
+    ``out``; ``driver`` (``"zenoh/tcp/HOST:PORT"``) runs a robot on the network instead
+    of the id's default. Returns the bags written. An interruption (Ctrl-C, SIGTERM)
+    closes the current bag properly before it propagates."""
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     kwargs: dict[str, Any] = {"estimator": estimator, "record_dir": out}
+    if driver is not None:
+        kwargs["driver"] = driver
     if steps is not None:
         kwargs["max_episode_steps"] = steps
     env = gym.make(env_id, **kwargs)

@@ -559,3 +559,16 @@ def test_thirty_minutes_of_emulated_operation_without_growth() -> None:
     assert out["skipped_or_dropped"]["overflow"] == 0
     assert out["env_rss_growth_mb"] < 20.0 and out["emulator_rss_growth_mb"] < 20.0, out
     assert out["p99_latency_change_ms"] < 2.0, out
+
+
+def test_the_record_command_runs_a_policy_on_the_robot(
+    emulator: EmulatorProcess, tmp_path: Any
+) -> None:
+    from agents.cli import main
+    from hardware.bag import read_run
+
+    out = tmp_path / "runs"
+    argv = ["record", "--env", HW_ID, "--driver", emulator.address, "--policy", "random"]
+    assert main([*argv, "--steps", "5", "--out", str(out)]) == 0
+    run = read_run(out / "episode_000")
+    assert 4 <= len(run.steps) <= 5 and run.description.name == "three_bar"
