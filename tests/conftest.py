@@ -19,9 +19,10 @@ HARDWARE_IDS = [env_id for env_id in ENV_IDS if gym.spec(env_id).nondeterministi
 """Ids of robots on the network: the tests run them against the emulator."""
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def emulators() -> Iterator[Callable[[str], EmulatorProcess]]:
-    """An emulator process per robot, started on first use, stopped at the end."""
+    """An emulator process per robot, started on first use, stopped after the module
+    (they run in real time: none should outlive the tests that use it)."""
     from hardware.link.process import EmulatorProcess
 
     started: dict[str, EmulatorProcess] = {}

@@ -215,6 +215,43 @@ def test_sort_mode_waits_for_the_other_half_of_a_pair() -> None:
     assert asm.take(now=12.05, wait=0.03).samples == [] and skipped == ["unpaired"]
 
 
+def test_a_late_half_pairs_and_its_stream_stays_in_time_order() -> None:
+    codec = RobotCodec(THREE_BAR)
+    skipped: list[str] = []
+    asm = SampleAssembler(codec, lambda kind, *_: skipped.append(kind), order="sort")
+    rng = np.random.default_rng(0)
+
+    def imu(t: float) -> list[tuple[str, bytes]]:
+        v = rng.normal(size=(3, 3))
+        return codec.encode_sample(ImuSample(t, 0, v[0], v[1], v[2] * 1e-5))
+
+    (raw_a, mag_a), (raw_b, mag_b) = imu(1.00), imu(1.01)
+    asm.add(*raw_b, arrival=5.0)
+    asm.add(*mag_b, arrival=5.0)
+    asm.add(*raw_a, arrival=5.001)  # overtaken: its magnetometer is still on its way
+    assert asm.take(now=5.01, wait=0.03).samples == []  # 1.01 waits behind 1.00
+    asm.add(*mag_a, arrival=5.02)
+    out = asm.take(now=5.03, wait=0.03).samples
+    assert [s.t for s in out] == [1.00, 1.01] and not np.isnan(out[0].mag).any()
+    assert skipped == []
+
+
+def test_a_clock_that_jumps_back_restarts_its_topic() -> None:
+    from hardware.bag.assembler import CLOCK_JUMP_RUN
+
+    codec = RobotCodec(THREE_BAR)
+    skipped: list[str] = []
+    asm = SampleAssembler(codec, lambda kind, *_: skipped.append(kind), order="sort")
+    asm.add("/motors/rest_lengths", _encoder_raw(codec, 1e6))  # one stamp far ahead
+    asm.take()
+    times = [1.0 + 0.01 * k for k in range(CLOCK_JUMP_RUN + 5)]
+    for t in times:
+        asm.add("/motors/rest_lengths", _encoder_raw(codec, t))
+    out = asm.take().samples
+    assert skipped == ["late"] * CLOCK_JUMP_RUN and asm.clock_jumps == 1
+    assert [s.t for s in out] == times[CLOCK_JUMP_RUN:]
+
+
 # ---------------------------------------------------------------------- fuzzing
 
 
@@ -423,10 +460,10 @@ def test_a_killed_robot_flags_then_raises_and_a_restarted_one_reconnects(
         for _ in range(100):
             t = time.monotonic()
             _, _, _, _, info = env.step(env.action_space.sample())
-            assert time.monotonic() - t < driver.control_period + 0.25  # never hangs
+            assert time.monotonic() - t < driver.control_period + 0.5  # never hangs
             flagged += info["link_stalled"]
     assert flagged >= 3
-    assert time.monotonic() - t_kill < timeouts.link_lost + 0.5
+    assert time.monotonic() - t_kill < timeouts.link_lost + 1.5
     emulator.start()
     obs, _ = env.reset(seed=1)
     _, _, _, _, info = env.step(env.action_space.sample())
@@ -456,6 +493,13 @@ def test_motors_hold_within_200_ms_of_the_last_heartbeat(emulator: EmulatorProce
     driver.close()
 
 
+def _wait_until(condition: Any, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.01)
+
+
 def test_stop_command_holds_the_present_rest_lengths(emulator: EmulatorProcess) -> None:
     import zenoh
 
@@ -476,15 +520,15 @@ def test_stop_command_holds_the_present_rest_lengths(emulator: EmulatorProcess) 
     inner.estimator = _FailingEstimator(inner.estimator, 4, RuntimeError("boom"))  # type: ignore[assignment]
     for _ in range(3):
         env.step(np.ones(6, np.float32))
+    n = len(commands)
     with pytest.raises(RuntimeError, match="boom"):
         env.step(np.ones(6, np.float32))
-    time.sleep(0.2)
+    _wait_until(lambda: len(commands) >= n + 2)  # the step's command, then the stop
     assert driver._encoders is not None
     np.testing.assert_allclose(commands[-1], driver._encoders)  # hold where they are
-    n = len(commands)
     env.close()
-    time.sleep(0.2)
-    assert len(commands) == n + 1  # close() sends one more stop
+    _wait_until(lambda: len(commands) >= n + 3)  # close() sends one more stop
+    np.testing.assert_allclose(commands[-1], driver._encoders)
     sub.undeclare()
     listener.close()
 
@@ -543,7 +587,7 @@ def test_the_emulator_starts_in_seconds_and_stops_cleanly(signal_name: str) -> N
     t = time.monotonic()
     process.start()
     started = time.monotonic() - t
-    assert started < 5.0  # about two seconds here, imports and settling included
+    assert started < 10.0  # about two seconds here (the bench times it), under load more
     assert process.process is not None
     process.process.send_signal(getattr(signal, signal_name))
     assert process.process.wait(timeout=5.0) == 0

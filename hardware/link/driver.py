@@ -20,9 +20,11 @@ motors when heartbeats stop.
 from __future__ import annotations
 
 import atexit
+import functools
 import logging
 import threading
 import time
+import weakref
 from collections import Counter, deque
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -56,7 +58,12 @@ __all__ = ["DriverTimeouts", "LinkError", "ZenohDriver"]
 
 log = logging.getLogger(__name__)
 
-_HEADER_TOPICS = ("/robot_description", "/tensegrity/calibration", "/camera/camera_info")
+_HEADER_TOPICS = (
+    "/robot_description",
+    "/tensegrity/run_info",
+    "/tensegrity/calibration",
+    "/camera/camera_info",
+)
 RESET_PERIODS = 5
 """Control periods at rest whose samples ``reset`` hands to the estimator."""
 
@@ -101,8 +108,8 @@ class ZenohDriver:
         pair_wait: seconds half of a message pair (IMU data and magnetometer, colour
             and depth) waits at the end of a period for its other half.
         max_message_bytes: bigger messages are refused (counted as ``oversized``).
-        inbox_size: messages held between steps; beyond it the oldest are dropped
-            (counted as ``overflow``).
+        inbox_size, inbox_bytes: messages and bytes held between steps; beyond either
+            the oldest are dropped (counted as ``overflow``).
         settle_speed: ``reset`` waits until no gyro reads more than this (rad/s).
     """
 
@@ -119,6 +126,7 @@ class ZenohDriver:
         pair_wait: float = 0.03,
         max_message_bytes: int = 16 << 20,
         inbox_size: int = 200_000,
+        inbox_bytes: int = 256 << 20,
         settle_speed: float = 0.05,
     ) -> None:
         if not np.isfinite(control_period) or control_period <= 0:
@@ -137,7 +145,10 @@ class ZenohDriver:
         self.limiter = CommandLimiter(description, control_period, max_change)
         self._given_calibration = calibration
         self._calibration: SensorCalibration | None = calibration
-        self._inbox: deque[tuple[str, bytes, float]] = deque(maxlen=inbox_size)
+        self.inbox_size, self.inbox_bytes = inbox_size, inbox_bytes
+        self._inbox: deque[tuple[str, bytes, float]] = deque()
+        self._inbox_lock = threading.Lock()  # Zenoh calls back from its own threads
+        self._inbox_used = 0  # bytes
         self._received = 0
         self._oversized = 0
         self._overflow = 0
@@ -150,13 +161,18 @@ class ZenohDriver:
         self._truth: GroundTruth | None = None
         self._last_frame: RgbdFrame | None = None
         self._encoders: NDArray[np.float64] | None = None
+        self._encoders_at = 0.0  # monotonic time the newest reading was collected
+        self._last_activity = 0.0  # monotonic time of the newest command
         self._last_sensor = 0.0
         self._last_by_stream: dict[str, float] = {}
         self._deadline: float | None = None
         self._closed = False
         self.last_heartbeat: float | None = None
         """Wall-clock time (s) the last heartbeat went out."""
-        atexit.register(self.close)
+        # At interpreter exit, stop the motors; a weak reference, so that the hook
+        # does not keep a forgotten driver alive.
+        self._at_exit = functools.partial(_close_at_exit, weakref.ref(self))
+        atexit.register(self._at_exit)
 
     # ------------------------------------------------------------------ link
 
@@ -193,20 +209,35 @@ class ZenohDriver:
     def _on_message(self, sample: Any) -> None:
         # Zenoh's thread: queue the bytes and nothing else.
         payload = sample.payload.to_bytes()
-        self._received += 1
-        if len(payload) > self.max_message_bytes:
-            self._oversized += 1
-            return
-        if len(self._inbox) == self._inbox.maxlen:
-            self._overflow += 1  # the append below pushes out the oldest
-        self._inbox.append((str(sample.key_expr), payload, time.monotonic()))
+        size = len(payload)
+        with self._inbox_lock:
+            self._received += 1
+            if size > self.max_message_bytes:
+                self._oversized += 1
+                return
+            inbox = self._inbox
+            while inbox and (
+                len(inbox) >= self.inbox_size or self._inbox_used + size > self.inbox_bytes
+            ):
+                self._inbox_used -= len(inbox.popleft()[1])
+                self._overflow += 1
+            inbox.append((str(sample.key_expr), payload, time.monotonic()))
+            self._inbox_used += size
 
     def _heartbeats(self) -> None:
         header_type = self.codec.store.types[HEARTBEAT_TYPE]
         time_type = self.codec.store.types["builtin_interfaces/msg/Time"]
         period = 1.0 / self.heartbeat_rate
+        # Heartbeats say the control loop is alive: they pause when no command has gone
+        # out for a while (a hung or interrupted policy, a long training update), and
+        # the robot holds its motors until the next command.
+        grace = max(3.0 * self.control_period, 0.5)
         next_beat = time.monotonic()
         while not self._stop_heartbeat.is_set():
+            next_beat += period
+            if time.monotonic() - self._last_activity > grace:
+                self._stop_heartbeat.wait(max(next_beat - time.monotonic(), 0.0))
+                continue
             sec, nanosec = m.stamp(time.time())
             msg = header_type(stamp=time_type(sec=sec, nanosec=nanosec), frame_id="env")
             try:
@@ -214,7 +245,6 @@ class ZenohDriver:
             except Exception:  # the session is closing
                 return
             self.last_heartbeat = time.time()
-            next_beat += period
             self._stop_heartbeat.wait(max(next_beat - time.monotonic(), 0.0))
 
     def _skip(self, kind: str, topic: str, ns: int | None, why: str) -> None:
@@ -225,10 +255,12 @@ class ZenohDriver:
     # ------------------------------------------------------------------ receiving
 
     def _drain(self) -> None:
-        """Decode everything queued since the last call."""
-        inbox, topics = self._inbox, self.codec.topics.types
-        while inbox:
-            key, raw, arrival = inbox.popleft()
+        """Decode what was queued when the call began (a bounded amount of work)."""
+        with self._inbox_lock:
+            batch, self._inbox = self._inbox, deque()
+            self._inbox_used = 0
+        topics = self.codec.topics.types
+        for key, raw, arrival in batch:
             topic = self.address.topic(key)
             if topic is None or topic not in topics:
                 self._skip("unknown_topic", key, None, "not in the robot's topic table")
@@ -238,9 +270,9 @@ class ZenohDriver:
                 continue
             if topic in (COMMAND_TOPIC, HEARTBEAT_TOPIC):
                 continue  # another controller on the link
-            self._assembler.add(topic, raw, arrival)
-            self._last_sensor = arrival
-            self._last_by_stream[topic] = arrival
+            if self._assembler.add(topic, raw, arrival):  # a sensor is alive
+                self._last_sensor = arrival
+                self._last_by_stream[topic] = arrival
 
     def _collect(self, now: float) -> list[Sample]:
         """Samples complete by ``now``; remembers the newest truth, frame and encoders."""
@@ -250,7 +282,7 @@ class ZenohDriver:
             self._truth = out.truth
         for sample in out.samples:
             if isinstance(sample, EncoderSample):
-                self._encoders = sample.rest_lengths
+                self._encoders, self._encoders_at = sample.rest_lengths, now
             elif isinstance(sample, RgbdFrame):
                 self._last_frame = sample
         return out.samples
@@ -321,9 +353,14 @@ class ZenohDriver:
         rest. Nothing is moved by hand: the robot stays where it is. Returns the samples
         of the last :data:`RESET_PERIODS` control periods."""
         self.connect()
+        self._deadline = None
+        self._drain()  # what came before this episode is not part of it
         self._assembler = SampleAssembler(self.codec, self._skip, order="sort")
         self._skipped.clear()
+        with self._inbox_lock:
+            self._oversized = self._overflow = 0
         self._truth, self._encoders = None, None
+        self._header.clear()  # the robot may have restarted: read its header anew
         self._last_by_stream.clear()
         t = self.timeouts
         wanted = "/tensegrity/calibration" if self._given_calibration is None else None
@@ -337,7 +374,6 @@ class ZenohDriver:
         self.limiter.reset(self._encoders)
         d = self.description
         nominal = d.rest_lengths[d.actuated]
-        self._deadline = None
         start = time.monotonic()
         settled = False
         # The estimator starts from the last RESET_PERIODS periods at rest: enough UWB
@@ -413,12 +449,16 @@ class ZenohDriver:
     def _send_command(self, targets: NDArray[np.float64]) -> None:
         _, raw = self.codec.encode_command(time.time(), targets)
         self._command_pub.put(raw)
+        self._last_activity = time.monotonic()
 
     def stop(self) -> None:
         """Hold the motors where they are: command the present rest lengths."""
         if self._session is None:
             return
-        hold = self._encoders if self._encoders is not None else self.limiter.previous
+        # The motors' present rest lengths: the encoders if they spoke lately, else the
+        # last command (an old reading would drive the motors back).
+        fresh = time.monotonic() - self._encoders_at <= 2.0 * self.control_period
+        hold = self._encoders if fresh and self._encoders is not None else self.limiter.previous
         if hold is None:
             return
         hold = np.clip(hold, self.limiter.lo, self.limiter.hi)
@@ -446,7 +486,7 @@ class ZenohDriver:
         if self._closed:
             return
         self._closed = True
-        atexit.unregister(self.close)
+        atexit.unregister(self._at_exit)
         self.stop()
         self._stop_heartbeat.set()
         if self._heartbeat_thread is not None:
@@ -454,3 +494,9 @@ class ZenohDriver:
         session, self._session = self._session, None
         if session is not None:
             session.close()
+
+
+def _close_at_exit(ref: weakref.ReferenceType[ZenohDriver]) -> None:
+    driver = ref()
+    if driver is not None:
+        driver.close()

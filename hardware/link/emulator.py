@@ -165,7 +165,7 @@ class Emulator:
         self._dropout_until: dict[str, float] = {}
         self._session: Any = None
         self._publishers: dict[str, Any] = {}
-        self._epoch = 0.0
+        self._epoch = -np.inf
         topics = self.codec.topics
         sensor_topics = {*topics.imu_raw, *topics.imu_mag, *topics.ahrs, *SENSOR_TOPICS}
         self._streams = sorted({_stream(t) for t in sensor_topics})
@@ -173,11 +173,7 @@ class Emulator:
     # ------------------------------------------------------------------ wire
 
     def _publish_now(self, topic: str, raw: bytes) -> None:
-        pub = self._publishers.get(topic)
-        if pub is None:
-            pub = self._session.declare_publisher(self.address.key(topic))
-            self._publishers[topic] = pub
-        pub.put(raw)
+        self._publishers[topic].put(raw)
         self.stats.published += 1
 
     def _send(self, topic: str, raw: bytes, now: float, faulty: bool = True) -> None:
@@ -245,12 +241,17 @@ class Emulator:
         """Listen, settle the robot, and publish its header; :meth:`run` then serves."""
         self._session = open_session(self.address, listen=True, timeout=5.0)
         key = self.address.key
+        self._publishers = {
+            topic: self._session.declare_publisher(key(topic))
+            for topic in self.codec.topics.types
+            if topic != COMMAND_TOPIC
+        }
         self._subscribers = [
             self._session.declare_subscriber(key(COMMAND_TOPIC), self._on_command),
             self._session.declare_subscriber(key(HEARTBEAT_TOPIC), self._on_heartbeat),
         ]
         result = self._backend.reset(self._rng)
-        self._epoch = time.time() - self._backend.world.time
+        self._sync_clock()
         self._header = self.codec.encode_header(
             self._backend.calibration, {"control_period": TICK, "emulated": True}, self._epoch
         )

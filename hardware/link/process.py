@@ -90,6 +90,8 @@ class EmulatorProcess:
             if self.process.poll() is None:
                 self.process.kill()
             self.process.wait()
+            if self.process.stdout is not None:
+                self.process.stdout.close()
 
     def stop(self, timeout: float = 10.0) -> int | None:
         """SIGTERM and wait (SIGKILL after ``timeout``); the exit status."""
