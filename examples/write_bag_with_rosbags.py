@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from hardware.bag.messages import CUSTOM_MESSAGES  # the same text as tensegrity_msgs/msg/*.msg
+sys.path.insert(0, str(Path(__file__).parent))  # lab_messages, beside this file
+from lab_messages import ahrs, rod_orientations, typestore, uwb_round
+
 from tensegrity_gym.model.description import dump_robot, load_robot
 
 CONTROL_PERIOD = 0.1  # s: one command per period
@@ -27,16 +28,10 @@ JOINTS = "sensor_msgs/msg/JointState"
 
 def main(out: Path, robot: str = "three_bar") -> None:
     d = load_robot(robot)  # a lab's own YAML in the same schema works the same way
-    store = get_typestore(Stores.ROS2_JAZZY)
-    for name, text in CUSTOM_MESSAGES.items():
-        store.register(get_types_from_msg(text, name))
+    store = typestore()
     T = store.types
     Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
-    Point, Quaternion, Vector3 = (
-        T["geometry_msgs/msg/Point"],
-        T["geometry_msgs/msg/Quaternion"],
-        T["geometry_msgs/msg/Vector3"],
-    )
+    Point = T["geometry_msgs/msg/Point"]
 
     def header(ns: int, frame: str = "") -> object:
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
@@ -54,7 +49,7 @@ def main(out: Path, robot: str = "three_bar") -> None:
     n_modules = len(modules)
     actuated = [d.cables[k].name for k in d.actuated]
     hold = d.rest_lengths[d.actuated]
-    no_cov = np.zeros(9)
+    quats = rod_orientations(d)
 
     with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as bag:
         conns: dict[str, object] = {}
@@ -90,43 +85,15 @@ def main(out: Path, robot: str = "three_bar") -> None:
             for k in range(1, 11):  # encoders and AHRS at 100 Hz within the period
                 ns = t0 + k * 10_000_000
                 write("/motors/rest_lengths", JOINTS, rest_lengths(ns, hold), ns)
-                for r, rod in enumerate(d.rods):
-                    i, j = d.rod_nodes[r]
-                    axis = (nodes[j] - nodes[i]) / np.linalg.norm(nodes[j] - nodes[i])
-                    # the rotation taking the body z axis onto the rod's axis
-                    xyz = np.cross([0.0, 0.0, 1.0], axis)
-                    q = np.array([*xyz, 1.0 + axis[2]])
-                    q /= np.linalg.norm(q)
-                    write(
-                        f"/{rod.name}/imu/data",
-                        "sensor_msgs/msg/Imu",
-                        T["sensor_msgs/msg/Imu"](
-                            header=header(ns, rod.name),
-                            orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
-                            orientation_covariance=no_cov,
-                            angular_velocity=Vector3(x=0.0, y=0.0, z=0.0),
-                            angular_velocity_covariance=np.r_[-1.0, np.zeros(8)],
-                            linear_acceleration=Vector3(x=0.0, y=0.0, z=0.0),
-                            linear_acceleration_covariance=np.r_[-1.0, np.zeros(8)],
-                        ),
-                        ns,
-                    )
+                for rod, q in zip(d.rods, quats, strict=True):
+                    imu = ahrs(store, header(ns, rod.name), q)
+                    write(f"/{rod.name}/imu/data", "sensor_msgs/msg/Imu", imu, ns)
             # one UWB round per period: every endcap to every anchor
             ns = t0 + 100_000_000
-            ranges = [
-                T["tensegrity_msgs/msg/UwbRange"](
-                    stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9),
-                    initiator=i,
-                    responder=len(nodes) + a,
-                    range=float(np.linalg.norm(anchors[a] - nodes[i])),
-                )
-                for i in range(len(nodes))
-                for a in range(len(anchors))
-            ]
             write(
                 "/uwb/ranges",
                 "tensegrity_msgs/msg/UwbRangeArray",
-                T["tensegrity_msgs/msg/UwbRangeArray"](header=header(ns), ranges=ranges),
+                uwb_round(store, header(ns), d),
                 ns,
             )
 

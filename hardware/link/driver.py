@@ -395,11 +395,12 @@ class ZenohDriver:
         return StepResult(samples, info={"robot_settled": settled, **self._link_info(False)})
 
     def _at_rest(self, samples: list[Sample], nominal: NDArray[np.float64]) -> bool:
-        gyros = [np.linalg.norm(s.gyro) for s in samples if isinstance(s, ImuSample)]
-        if not gyros or self._encoders is None:
+        """The motors are at ``nominal`` and no gyro turns (a robot without raw IMU
+        streams is judged by its encoders alone)."""
+        if self._encoders is None or not np.allclose(self._encoders, nominal, atol=2e-3):
             return False
-        at_length = np.allclose(self._encoders, nominal, atol=2e-3)
-        return bool(at_length and max(gyros) < self.settle_speed)
+        gyros = [float(np.linalg.norm(s.gyro)) for s in samples if isinstance(s, ImuSample)]
+        return max(gyros, default=0.0) < self.settle_speed
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
         if self._deadline is None:

@@ -1,0 +1,123 @@
+"""The robot's side of the wire, written with nothing but `eclipse-zenoh` and `rosbags`:
+what a lab runs on (or beside) its robot so that `gym.make(..., driver="zenoh/...")`
+drives it. A ROS 2 robot needs none of this: zenoh-bridge-ros2dds forwards its topics.
+
+Usage: python examples/robot_node_with_zenoh.py [tcp/127.0.0.1:7447] [SECONDS]
+
+This robot stands still at its nominal shape: its motors follow the rest-length
+commands at their maximum speed, its encoders report them at 100 Hz, the AHRS of each
+rod reports the rod's orientation at 100 Hz, and the UWB modules range every endcap to
+every anchor at 10 Hz. It holds its motors before the first heartbeat and when none has
+come for 0.15 s. A real robot fills in its own readings.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+sys.path.insert(0, str(Path(__file__).parent))  # lab_messages, beside this file
+from lab_messages import ahrs, rod_orientations, typestore, uwb_round
+
+from tensegrity_gym.model.description import dump_robot, load_robot
+
+JOINTS = "sensor_msgs/msg/JointState"
+WATCHDOG = 0.15  # s without a heartbeat before the motors hold
+
+
+def serve(
+    endpoint: str = "tcp/127.0.0.1:7447", seconds: float = 1e9, robot: str = "three_bar"
+) -> None:
+    d = load_robot(robot)
+    store = typestore()
+    T = store.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+    Point = T["geometry_msgs/msg/Point"]
+
+    def header(frame: str = "") -> object:
+        ns = time.time_ns()  # the robot's clock, synchronised with the env's machine
+        return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    nodes, anchors = d.initial_positions, d.anchors
+    actuated = [d.cables[k].name for k in d.actuated]
+    lo = np.array([d.cables[k].motor.min_rest_length for k in d.actuated])
+    hi = np.array([d.cables[k].motor.max_rest_length for k in d.actuated])
+    speed = np.array([d.cables[k].motor.max_speed for k in d.actuated])
+    rest = d.rest_lengths[d.actuated].copy()  # the motors' present rest lengths (m)
+    target = rest.copy()
+    last_heartbeat = [-1.0]
+    lock = threading.Lock()
+
+    config = zenoh.Config()
+    config.insert_json5("mode", json.dumps("peer"))
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(config)
+
+    def put(topic: str, msgtype: str, msg: object) -> None:
+        # ROS topic /a/b is Zenoh key a/b; the payload is the message's CDR bytes.
+        session.put(topic.lstrip("/"), bytes(store.serialize_cdr(msg, msgtype)))
+
+    def on_command(sample: zenoh.Sample) -> None:
+        msg = store.deserialize_cdr(sample.payload.to_bytes(), JOINTS)
+        values = dict(zip(msg.name, np.asarray(msg.position), strict=True))
+        if set(values) == set(actuated) and np.all(np.isfinite(list(values.values()))):
+            with lock:
+                target[:] = np.clip([values[n] for n in actuated], lo, hi)
+
+    def on_heartbeat(_sample: zenoh.Sample) -> None:
+        last_heartbeat[0] = time.monotonic()
+
+    subscribers = [
+        session.declare_subscriber("commands/rest_length_targets", on_command),
+        session.declare_subscriber("tensegrity/heartbeat", on_heartbeat),
+    ]
+    n_modules = len(nodes) + len(anchors)
+    calibration = T["tensegrity_msgs/msg/SensorCalibration"](
+        header=header("world"),
+        anchors=[Point(x=a[0], y=a[1], z=a[2]) for a in anchors],
+        n_modules=n_modules,
+        uwb_offsets=np.zeros(n_modules * n_modules),  # no offsets measured
+        camera_pose=np.eye(4).reshape(16),
+    )
+    description = T["std_msgs/msg/String"](data=dump_robot(d))
+    quats = rod_orientations(d)
+
+    start = time.monotonic()
+    tick = 0
+    while time.monotonic() - start < seconds:
+        if tick % 100 == 0:  # about once a second, for late joiners
+            put("/robot_description", "std_msgs/msg/String", description)
+            put("/tensegrity/calibration", "tensegrity_msgs/msg/SensorCalibration", calibration)
+        with lock:
+            alive = time.monotonic() - last_heartbeat[0] < WATCHDOG
+            goal = target.copy() if alive else rest.copy()  # hold without heartbeats
+            target[:] = goal
+        rest += np.clip(goal - rest, -speed * 0.01, speed * 0.01)
+        put(
+            "/motors/rest_lengths",
+            JOINTS,
+            T[JOINTS](
+                header=header(), name=actuated, position=rest.copy(),
+                velocity=np.empty(0), effort=np.empty(0),
+            ),
+        )  # fmt: skip
+        for rod, q in zip(d.rods, quats, strict=True):
+            put(f"/{rod.name}/imu/data", "sensor_msgs/msg/Imu", ahrs(store, header(rod.name), q))
+        if tick % 10 == 0:  # a UWB round: every endcap to every anchor
+            put("/uwb/ranges", "tensegrity_msgs/msg/UwbRangeArray", uwb_round(store, header(), d))
+        tick += 1
+        time.sleep(max(start + 0.01 * tick - time.monotonic(), 0.0))  # 100 Hz
+    for subscriber in subscribers:
+        subscriber.undeclare()
+    session.close()
+
+
+if __name__ == "__main__":
+    serve(*sys.argv[1:2], *[float(s) for s in sys.argv[2:3]])
