@@ -207,6 +207,26 @@ def _same_period(a: BagPeriod, b: BagPeriod, where: str) -> None:
     assert a.t_end == b.t_end, f"{where} t_end"
 
 
+def _same_periods(got: Sequence[BagPeriod], want: Sequence[BagPeriod], first: int = 0) -> None:
+    """Period by period, as many of each; ``first`` numbers the first in messages."""
+    for k, (a, b) in enumerate(zip(got, want, strict=True)):
+        _same_period(a, b, f"period {k + first}")
+
+
+def _edit_every(topic: str, edit: Callable[[Any], None]) -> Callable[..., Iterator[Message]]:
+    """A rewrite that decodes every message of ``topic``, edits it, and encodes it."""
+
+    def transform(t: str, msgtype: str, ns: int, raw: bytes) -> Iterator[Message]:
+        if t == topic:
+            store = m.typestore()
+            msg = store.deserialize_cdr(raw, msgtype)
+            edit(msg)
+            raw = bytes(store.serialize_cdr(msg, msgtype))
+        yield t, msgtype, ns, raw
+
+    return transform
+
+
 def _same_as_step(a: BagPeriod, b: RecordedStep, where: str, *, partial: bool = False) -> None:
     """A period read back against the in-memory step; ``partial``: a cut-off last period,
     whose samples are a prefix of the step's."""
@@ -363,8 +383,7 @@ def test_rewriting_with_rosbags_alone_changes_nothing(intact: Intact, tmp_path: 
     reader, periods = _read(bag)
     assert not reader.skipped and not reader.unknown_topics and not reader.recovered
     assert len(periods) == len(intact.periods)
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
 
 
 # ---------------------------------------------------------------------- cut-off files
@@ -603,15 +622,13 @@ def test_garbage_metadata_beside_an_intact_mcap_reads_every_period(
     (bag / "metadata.yaml").write_text(text)
     _, periods = _read(bag)
     assert len(periods) == len(intact.periods)
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
 
 
 def test_a_bare_mcap_file_reads_like_its_folder(intact: Intact) -> None:
     reader, periods = _read(intact.bag / "episode_000.mcap")
     assert not reader.recovered and not reader.skipped
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
 
 
 # ---------------------------------------------------------------------- topics and types
@@ -631,8 +648,7 @@ def test_a_topic_outside_the_table_is_skipped_and_counted(intact: Intact, tmp_pa
     n_imu = sum(isinstance(s, ImuSample) and s.rod == 0 for p in periods for s in p.samples)
     assert reader.unknown_topics == {"/tf": n_imu}
     assert reader.skipped == {"unknown_topic": n_imu}
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
 
 
 def test_strict_refuses_a_topic_outside_the_table(intact: Intact, tmp_path: Path) -> None:
@@ -735,8 +751,7 @@ def test_no_robot_description_gives_bag_error_unless_the_robot_is_given(
     assert str(bag) in str(err.value)
     reader, periods = _read(bag, description=load_robot(ROBOT))
     assert reader.description == load_robot(ROBOT) and not reader.skipped
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
 
 
 def test_no_calibration_gives_bag_error(intact: Intact, tmp_path: Path) -> None:
@@ -816,8 +831,7 @@ def test_duplicated_imu_stamps_are_counted_and_strict_names_topic_and_time(
     bag = _rewrite(intact.bag, tmp_path / "bag", dup)
     reader, periods = _read(bag)
     assert reader.skipped == {"duplicate": 1}
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
     t = ns_to_seconds(dup.stamp or 0)
     with pytest.raises(BagError, match=rf"/red/imu/data_raw at t={t:.9f} s: duplicate") as err:
         _read(bag, strict=True)
@@ -832,8 +846,7 @@ def test_out_of_order_imu_stamps_are_counted_and_strict_names_topic_and_time(
     reader, periods = _read(bag)
     assert reader.skipped == {"out_of_order": 1}
     expected = _without(intact.periods, _at(swap.stamp, ImuSample, rod=1))
-    for k, (a, b) in enumerate(zip(periods, expected, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, expected)
     t = ns_to_seconds(swap.stamp or 0)
     with pytest.raises(BagError, match=rf"/green/imu/data_raw at t={t:.9f} s: out of order"):
         _read(bag, strict=True)
@@ -857,8 +870,7 @@ def test_a_second_command_at_the_same_time_is_a_counted_duplicate(
     bag = _rewrite(intact.bag, tmp_path / "bag", transform)
     reader, periods = _read(bag)
     assert reader.skipped == {"duplicate": 1}
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
     with pytest.raises(BagError, match=r"/commands/rest_length_targets at t=.*duplicate"):
         _read(bag, strict=True)
 
@@ -927,8 +939,7 @@ def test_a_non_finite_value_is_skipped_and_never_reaches_a_sample(
     reader, periods = _read(bag)
     assert reader.skipped == {"undecodable": 1}
     expected = _without(intact.periods, _at(editor.stamp, kind, **attrs))
-    for k, (a, b) in enumerate(zip(periods, expected, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, expected)
     for s in (s for p in periods for s in p.samples):
         for f in dataclasses.fields(s):
             x = getattr(s, f.name)
@@ -968,18 +979,11 @@ def _reverse_names(msg: Any) -> None:
 def test_joint_states_in_another_name_order_are_mapped_by_name(
     intact: Intact, tmp_path: Path, topic: str
 ) -> None:
-    def transform(t: str, msgtype: str, ns: int, raw: bytes) -> Iterator[Message]:
-        if t == topic:
-            store = m.typestore()
-            msg = store.deserialize_cdr(raw, msgtype)
-            _reverse_names(msg)
-            raw = bytes(store.serialize_cdr(msg, msgtype))
-        yield t, msgtype, ns, raw
-
-    reader, periods = _read(_rewrite(intact.bag, tmp_path / "bag", transform))
+    reader, periods = _read(
+        _rewrite(intact.bag, tmp_path / "bag", _edit_every(topic, _reverse_names))
+    )
     assert not reader.skipped
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
 
 
 def _rename_first(msg: Any) -> None:
@@ -1009,8 +1013,7 @@ def test_joint_states_that_do_not_fit_the_robot_are_skipped(
     reader, periods = _read(bag)
     assert reader.skipped == {"undecodable": 1}
     expected = _without(intact.periods, _at(editor.stamp, EncoderSample))
-    for k, (a, b) in enumerate(zip(periods, expected, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, expected)
 
 
 def test_a_command_with_an_unknown_cable_is_skipped(intact: Intact, tmp_path: Path) -> None:
@@ -1021,8 +1024,7 @@ def test_a_command_with_an_unknown_cable_is_skipped(intact: Intact, tmp_path: Pa
     assert len(periods) == len(intact.periods) - 1
     merged = intact.periods[3].samples + intact.periods[4].samples
     _same_samples(periods[3].samples, merged, "merged period")
-    for k, (a, b) in enumerate(zip(periods[4:], intact.periods[5:], strict=True)):
-        _same_period(a, b, f"period {k + 4}")
+    _same_periods(periods[4:], intact.periods[5:], first=4)
 
 
 @pytest.mark.parametrize("module", ["initiator", "responder"])
@@ -1039,8 +1041,7 @@ def test_a_uwb_module_id_out_of_range_is_skipped(
     reader, periods = _read(bag)
     assert reader.skipped == {"undecodable": 1}
     expected = _without(intact.periods, _at(editor.stamp, UwbRangeSample))
-    for k, (a, b) in enumerate(zip(periods, expected, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, expected)
     for s in (s for p in periods for s in p.samples if isinstance(s, UwbRangeSample)):
         assert s.pairs.max() < n_modules
     with pytest.raises(BagError, match=r"/uwb/ranges at t=.*module id"):
@@ -1050,19 +1051,14 @@ def test_a_uwb_module_id_out_of_range_is_skipped(
 def test_contact_flags_in_another_node_order_are_mapped_by_name(
     intact: Intact, tmp_path: Path
 ) -> None:
-    def transform(topic: str, msgtype: str, ns: int, raw: bytes) -> Iterator[Message]:
-        if topic == "/contacts":
-            store = m.typestore()
-            msg: Any = store.deserialize_cdr(raw, msgtype)
-            msg.nodes = list(reversed(msg.nodes))
-            msg.in_contact = np.array(msg.in_contact[::-1])
-            raw = bytes(store.serialize_cdr(msg, msgtype))
-        yield topic, msgtype, ns, raw
+    def reverse_nodes(msg: Any) -> None:
+        msg.nodes = list(reversed(msg.nodes))
+        msg.in_contact = np.array(msg.in_contact[::-1])
 
-    reader, periods = _read(_rewrite(intact.bag, tmp_path / "bag", transform))
+    bag = _rewrite(intact.bag, tmp_path / "bag", _edit_every("/contacts", reverse_nodes))
+    reader, periods = _read(bag)
     assert not reader.skipped
-    for k, (a, b) in enumerate(zip(periods, intact.periods, strict=True)):
-        _same_period(a, b, f"period {k}")
+    _same_periods(periods, intact.periods)
 
 
 def _truncate(raw: bytes) -> bytes:

@@ -346,11 +346,3 @@ class SampleAssembler:
         self._buffered.get(topic, set()).discard(stamp)
         if stamp > self._floor.get(topic, -1):
             self._floor[topic] = stamp
-
-    @property
-    def waiting(self) -> int:
-        """Halves of pairs held back for their other half."""
-        return sum(
-            len(p.items)
-            for p in (self._imu, self._mag, self._color, self._depth, self._truth_state)
-        )

@@ -301,6 +301,7 @@ class ZenohDriver:
         """Messages skipped or dropped since ``reset``, by kind, and those sorted."""
         counts = dict(self._skipped)
         counts["reordered"] = self._assembler.reordered
+        counts["clock_jumps"] = self._assembler.clock_jumps
         counts["oversized"] = self._oversized
         counts["overflow"] = self._overflow
         return counts
@@ -392,7 +393,8 @@ class ZenohDriver:
                 self.address,
                 t.settle,
             )
-        return StepResult(samples, info={"robot_settled": settled, **self._link_info(False)})
+        info = {"robot_settled": settled, **self._link_info(overrun=False, stalled=False)}
+        return StepResult(samples, info=info)
 
     def _at_rest(self, samples: list[Sample], nominal: NDArray[np.float64]) -> bool:
         """The motors are at ``nominal`` and no gyro turns (a robot without raw IMU
@@ -427,20 +429,19 @@ class ZenohDriver:
                 f"robot at {self.address}: no sensor message for {quiet:.1f} s "
                 f"(timeouts.link_lost = {self.timeouts.link_lost:g} s); motors told to hold"
             )
-        info = self._link_info(overrun)
-        info["link_stalled"] = quiet > self.timeouts.stall
+        info = self._link_info(overrun, stalled=quiet > self.timeouts.stall)
         info["link_latency_s"] = time.monotonic() - self._deadline  # what the driver adds
         # How old the freshest sample is, robot clock against ours (synchronised clocks).
         info["link_newest_age_s"] = time.time() - samples[-1].t if samples else None
         return StepResult(samples, info=info, command=command)
 
-    def _link_info(self, overrun: bool) -> dict[str, Any]:
+    def _link_info(self, overrun: bool, stalled: bool) -> dict[str, Any]:
         now = time.monotonic()
         quiet = sorted(
             s for s, t in self._last_by_stream.items() if now - t > self.timeouts.sensor_quiet
         )
         return {
-            "link_stalled": False,
+            "link_stalled": stalled,
             "link_overrun": overrun,
             "link_quiet_topics": quiet,
             "link_counts": self.link_counts(),

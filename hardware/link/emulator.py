@@ -28,7 +28,7 @@ import numpy as np
 from hardware.bag.codec import MessageError, RobotCodec
 from hardware.link.safety import Watchdog, check_fields
 from hardware.link.wire import COMMAND_TOPIC, HEARTBEAT_TOPIC, LinkAddress, LinkError, open_session
-from tensegrity_gym.model.samples import UwbRangeSample, ns_to_seconds
+from tensegrity_gym.model.samples import UwbRangeSample
 from tensegrity_gym.sim.backend import SimBackend
 
 if TYPE_CHECKING:
@@ -381,10 +381,6 @@ class Emulator:
     def rest_lengths(self) -> NDArray[np.float64]:
         """The motors' present rest lengths (m), (m,)."""
         return np.asarray(self._backend.world.rest_lengths)[self.description.actuated].copy()
-
-    @property
-    def robot_time(self) -> float:
-        return ns_to_seconds(self._backend.world.time_ns) + self._epoch
 
 
 # ---------------------------------------------------------------------- command line
