@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
+from tensegrity_gym.model.protocols import backend_can_wait
 from tensegrity_gym.model.samples import ns_to_seconds, seconds_to_ns
 
 if TYPE_CHECKING:
@@ -25,7 +26,13 @@ if TYPE_CHECKING:
     from hardware.bag.writer import BagWriter
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.estimate import Estimate
-    from tensegrity_gym.model.protocols import Backend, Estimator, SensorCalibration, StepResult
+    from tensegrity_gym.model.protocols import (
+        Backend,
+        Estimator,
+        ReadyCheck,
+        SensorCalibration,
+        StepResult,
+    )
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
 __all__ = [
@@ -116,8 +123,11 @@ class RecordingBackend:
         """When the next command is sent (s): the end of the latest period."""
         return ns_to_seconds(self._t_ns)
 
-    def reset(self, rng: np.random.Generator) -> StepResult:
-        result = self.inner.reset(rng)
+    def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
+        if ready is not None and backend_can_wait(self.inner):
+            result = self.inner.reset(rng, ready=ready)
+        else:
+            result = self.inner.reset(rng)
         truth = self.inner.ground_truth()
         times = [s.t for s in result.samples] + ([truth.t] if truth is not None else [])
         self._t_ns = seconds_to_ns(max(times, default=0.0))

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 
     from hardware.bag.reader import BagPeriod
     from tensegrity_gym.model.description import RobotDescription
-    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.protocols import ReadyCheck, SensorCalibration
     from tensegrity_gym.model.samples import GroundTruth
 
 __all__ = ["ReplayBackend"]
@@ -84,7 +84,7 @@ class ReplayBackend:
             if isinstance(s, RgbdFrame):
                 self._frame = s
 
-    def reset(self, rng: np.random.Generator) -> StepResult:
+    def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
         """Start again from the beginning of the bag (``rng`` is not used)."""
         self._periods = self.reader.periods()
         self._truth = self._frame = None

@@ -51,7 +51,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
-    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.protocols import ReadyCheck, SensorCalibration
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
 __all__ = ["DriverTimeouts", "LinkError", "ZenohDriver"]
@@ -348,7 +348,7 @@ class ZenohDriver:
             except MessageError as err:
                 raise LinkError(f"robot at {self.address}: bad calibration: {err}") from None
 
-    def reset(self, rng: np.random.Generator) -> StepResult:
+    def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
         """Connect if needed, wait for the robot's calibration and first samples, bring
         the motors to the description's rest lengths, and wait for the robot to come to
         rest. Nothing is moved by hand: the robot stays where it is. Returns the samples

@@ -13,11 +13,16 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from tensegrity_gym.model.protocols import backend_can_wait
+
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.estimate import Estimate
-    from tensegrity_gym.model.protocols import Backend, Estimator
+    from tensegrity_gym.model.protocols import Backend, Estimator, StepResult
+    from tensegrity_gym.model.samples import Sample
     from tensegrity_gym.tasks.roll import RollTask
 
 __all__ = ["TensegrityEnv"]
@@ -62,6 +67,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self.observation_space = task.observation_space
         lo, hi, _ = d.motor_limits
         self._target_lo, self._target_span = lo, hi - lo
+        self._backend_waits = backend_can_wait(backend)
         self._estimate: Estimate | None = None
         self._observation: NDArray[np.float32] | None = None
 
@@ -120,7 +126,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             raise
 
     def _reset(self) -> tuple[NDArray[np.float32], dict[str, Any]]:
-        start = self.backend.reset(self.np_random)
+        start = self._reset_backend()
         d = self.backend.description
         command = d.rest_lengths[d.actuated].copy()  # the motors hold their initial lengths
         estimate = self.estimator.reset(
@@ -138,6 +144,20 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         info = self._info(estimate)
         info.update(start.info)
         return self._observation, info
+
+    def _reset_backend(self) -> StepResult:
+        """Reset the backend; one that can wait (a robot) waits until the estimator has
+        what it needs to initialise."""
+        check = getattr(self.estimator, "initialisation_missing", None)
+        if check is None or not self._backend_waits:
+            return self.backend.reset(self.np_random)
+        d = self.backend.description
+
+        def ready(samples: Sequence[Sample]) -> str | None:
+            missing: str | None = check(d, self.backend.calibration, samples)
+            return missing
+
+        return self.backend.reset(self.np_random, ready=ready)
 
     def step(
         self, action: NDArray[np.float32]

@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from collections.abc import Mapping
+
     from numpy.typing import NDArray
 
 __all__ = ["Estimate"]
@@ -34,6 +36,12 @@ class Estimate:
     """Rod orientations (r, 4), (x, y, z, w), body z from a rod's first node to its second,
     where the method tracks the turn about the axis; None where it does not (the axis
     alone is known: ``rod_quaternion_from_axis`` gives the canonical orientation)."""
+    failed_streams: tuple[str, ...] = ()
+    """Sensor streams the estimator has stopped fusing because they were implausible for a
+    while (e.g. ``"uwb"``, ``"imu/red"``, ``"cable_lengths"``); empty while all are fused."""
+    rejected: Mapping[str, int] | None = None
+    """Measurements rejected as physically implausible since the last reset, counted by
+    kind (e.g. ``"uwb_range_too_long"``); None where the method does not count them."""
 
     def is_finite(self) -> bool:
         return bool(

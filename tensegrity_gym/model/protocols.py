@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
+import inspect
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
-
     import numpy as np
     from numpy.typing import NDArray
 
@@ -15,7 +15,15 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.estimate import Estimate
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
-__all__ = ["Backend", "Estimator", "SensorCalibration", "StepResult"]
+__all__ = [
+    "Backend",
+    "Estimator",
+    "InitialisationCheck",
+    "ReadyCheck",
+    "SensorCalibration",
+    "StepResult",
+    "backend_can_wait",
+]
 
 
 @dataclass(frozen=True)
@@ -49,6 +57,11 @@ class StepResult:
     """The source has nothing after this period (a log's end); the episode is truncated."""
 
 
+ReadyCheck = Callable[[Sequence["Sample"]], "str | None"]
+"""``ready(samples) -> None`` when an estimator can initialise from ``samples``, else a
+one-line description of what is missing (``"3 UWB ranges to anchors, 4 needed"``)."""
+
+
 @runtime_checkable
 class Backend(Protocol):
     """Where samples come from: a simulation, a robot, or a log."""
@@ -60,8 +73,13 @@ class Backend(Protocol):
     @property
     def calibration(self) -> SensorCalibration: ...
 
-    def reset(self, rng: np.random.Generator) -> StepResult:
-        """Start an episode; return the samples of the settling period."""
+    def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
+        """Start an episode; return the samples of the settling period.
+
+        ``ready(samples)`` says what the estimator still lacks to initialise from
+        ``samples`` (None: nothing). A backend that can wait for more (a robot) waits,
+        within its timeout, until it returns None, and raises naming what is missing.
+        """
         ...
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
@@ -85,6 +103,20 @@ class Backend(Protocol):
 
 
 @runtime_checkable
+class InitialisationCheck(Protocol):
+    """Optional for estimators: say before ``reset`` whether samples are enough to start."""
+
+    def initialisation_missing(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+    ) -> str | None:
+        """None if ``reset`` can start from ``samples``, else what is missing (one line)."""
+        ...
+
+
+@runtime_checkable
 class Estimator(Protocol):
     """Turns samples and commands into an :class:`Estimate`. Sees nothing else."""
 
@@ -101,3 +133,13 @@ class Estimator(Protocol):
     ) -> Estimate: ...
 
     def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate: ...
+
+
+def backend_can_wait(backend: object) -> bool:
+    """Whether ``backend.reset`` takes ``ready=`` (a Backend written before it existed
+    does not, and is reset without it)."""
+    try:
+        params = inspect.signature(backend.reset).parameters  # type: ignore[attr-defined]
+    except (AttributeError, TypeError, ValueError):
+        return False
+    return "ready" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())

@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import ReadyCheck
     from tensegrity_gym.model.samples import Sample
     from tensegrity_gym.sim.world import Snapshot
 
@@ -202,9 +203,11 @@ class SimBackend:
 
     # ------------------------------------------------------------------ episodes
 
-    def reset(self, rng: np.random.Generator) -> StepResult:
+    def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
         """Place the settled robot at a random heading and position; return the first
-        samples (one of each sensor, the AHRS having converged while it rested)."""
+        samples (one of each sensor, the AHRS having converged while it rested).
+
+        ``ready`` is not waited on: the settling period's samples are all there is."""
         d = self.description
         self._rng = rng
         positions, quats = settled_pose(d, self.time_step, self.settle_time)
