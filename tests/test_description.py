@@ -159,6 +159,11 @@ def _rest_outside_motor_range(doc: dict[str, Any]) -> None:
     doc["cables"][0]["rest_length"] = doc["cables"][0]["motor"]["max_rest_length"] + 0.05
 
 
+def _motor_without_range(doc: dict[str, Any]) -> None:
+    motor = doc["cables"][1]["motor"]
+    motor["min_rest_length"] = motor["max_rest_length"] = doc["cables"][1]["rest_length"]
+
+
 MALFORMED = {
     # id: (mutation, substrings the message must contain besides the file path)
     "missing_stiffness": (_del(("cables", 2, "stiffness")), ["cables[2].stiffness", "missing"]),
@@ -212,6 +217,18 @@ MALFORMED = {
     "unsupported_imu_mount": (_set(("sensors", "imu", "mount"), "endcap"), ["sensors.imu.mount"]),
     "rods_not_a_list": (_set(("rods",), {"red": 1}), ["rods", "expected a list"]),
     "no_actuated_cable": (_make_all_passive, ["cables", "no cable is actuated"]),
+    "motor_without_range": (
+        _motor_without_range,
+        ["cables[1].motor.max_rest_length", "must exceed min_rest_length"],
+    ),
+    "imu_full_scale_zero": (
+        _set(("sensors", "imu", "gyro_full_scale"), 0.0),
+        ["sensors.imu.gyro_full_scale", "positive"],
+    ),
+    "imu_full_scale_misspelt": (
+        _set(("sensors", "imu", "accel_fullscale"), 100.0),
+        ["sensors.imu.accel_fullscale", "unknown"],
+    ),
 }
 
 
@@ -320,3 +337,16 @@ def test_loads_robot_names_its_source() -> None:
         loads_robot(
             dump_robot(load_robot("three_bar")).replace("gravity: 9.81", "gravity: x"), "bag.mcap"
         )
+
+
+def test_imu_full_scale_is_optional_and_read(three_bar_doc: dict[str, Any]) -> None:
+    """Old descriptions (and bags) have no full scale: the defaults are 16 g and
+    2000 deg/s; a given one is kept through the YAML round trip."""
+    d = parse_robot(copy.deepcopy(three_bar_doc), "three_bar")
+    assert d.sensors.imu.accel_full_scale == pytest.approx(16 * 9.80665)
+    assert d.sensors.imu.gyro_full_scale == pytest.approx(np.radians(2000.0))
+    doc = copy.deepcopy(three_bar_doc)
+    doc["sensors"]["imu"]["accel_full_scale"] = 78.5
+    d = parse_robot(doc, "x")
+    assert d.sensors.imu.accel_full_scale == 78.5
+    assert loads_robot(dump_robot(d)) == d

@@ -122,6 +122,11 @@ class ImuConfig:
     magnetic_field: tuple[float, float, float]
     """Earth field in the world frame (T), as sensor_msgs/MagneticField carries it."""
     ahrs_gain: float
+    accel_full_scale: float = 16.0 * 9.80665
+    """Largest specific force the accelerometer reports (m/s^2); readings saturate there.
+    Optional in YAML; 16 g, the widest range of common MEMS IMUs."""
+    gyro_full_scale: float = float(np.radians(2000.0))
+    """Largest angular rate the gyro reports (rad/s); optional in YAML, 2000 deg/s."""
 
 
 @dataclass(frozen=True)
@@ -309,13 +314,15 @@ class _Reader:
     def fail(self, path: str, message: str) -> DescriptionError:
         return DescriptionError(f"{self.source}: {path}: {message}")
 
-    def mapping(self, value: Any, path: str, keys: set[str]) -> dict[str, Any]:
+    def mapping(
+        self, value: Any, path: str, keys: set[str], optional: frozenset[str] = frozenset()
+    ) -> dict[str, Any]:
         if not isinstance(value, dict):
             raise self.fail(path, f"expected a mapping, got {type(value).__name__}")
         missing = sorted(keys - value.keys())
         if missing:
             raise self.fail(f"{path}.{missing[0]}" if path else missing[0], "missing field")
-        unknown = sorted(set(value) - keys)
+        unknown = sorted(set(value) - keys - optional)
         if unknown:
             raise self.fail(f"{path}.{unknown[0]}" if path else unknown[0], "unknown field")
         return value
@@ -381,6 +388,7 @@ def _sensors(r: _Reader, doc: Any) -> SensorSuite:
         f"{p}.imu",
         {"rate", "mount", "accel_noise", "gyro_noise", "accel_bias", "gyro_bias", "mag_noise",
          "magnetic_field", "ahrs_gain"},
+        frozenset({"accel_full_scale", "gyro_full_scale"}),
     )  # fmt: skip
     if imu["mount"] != "rod_centre":
         raise r.fail(f"{p}.imu.mount", f"only 'rod_centre' is supported, got {imu['mount']!r}")
@@ -395,6 +403,11 @@ def _sensors(r: _Reader, doc: Any) -> SensorSuite:
         mag_noise=r.number(imu["mag_noise"], f"{q}.mag_noise", non_negative=True),
         magnetic_field=r.vector(imu["magnetic_field"], f"{q}.magnetic_field", 3),  # type: ignore[arg-type]
         ahrs_gain=r.number(imu["ahrs_gain"], f"{q}.ahrs_gain", positive=True),
+        **{
+            key: r.number(imu[key], f"{q}.{key}", positive=True)
+            for key in ("accel_full_scale", "gyro_full_scale")
+            if key in imu
+        },
     )
     enc = r.mapping(s["encoder"], f"{p}.encoder", {"rate", "resolution"})
     enc_cfg = EncoderConfig(
@@ -564,6 +577,11 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
             )
             lo = r.number(m["min_rest_length"], f"{p}.motor.min_rest_length", positive=True)
             hi = r.number(m["max_rest_length"], f"{p}.motor.max_rest_length", positive=True)
+            if hi <= lo:
+                raise r.fail(
+                    f"{p}.motor.max_rest_length",
+                    f"{hi} must exceed min_rest_length {lo}: a motor needs a range to move in",
+                )
             if not lo <= rest <= hi:
                 raise r.fail(
                     f"{p}.rest_length", f"{rest} lies outside the motor's range [{lo}, {hi}]"

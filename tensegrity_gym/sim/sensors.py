@@ -103,7 +103,7 @@ class ImuModel:
         settings = imufusion.AhrsSettings()
         settings.convention = imufusion.CONVENTION_NWU  # x north (along the field), z up
         settings.gain = self.config.ahrs_gain
-        settings.gyroscope_range = 2000.0
+        settings.gyroscope_range = float(np.degrees(self.config.gyro_full_scale))
         settings.acceleration_rejection = 10.0
         settings.magnetic_rejection = 10.0
         settings.sample_rate = round(self.config.rate)
@@ -144,8 +144,10 @@ class ImuModel:
         f = quaternion_rotate(inv, accel_world - self.gravity)
         w = quaternion_rotate(inv, omega_world)
         m = quaternion_rotate(inv, np.broadcast_to(self.field, omega_world.shape))
-        accel = f + self.accel_bias + c.accel_noise * noise[..., 0:3]
-        gyro = w + self.gyro_bias + c.gyro_noise * noise[..., 3:6]
+        # A MEMS IMU saturates at its full scale (an impact reads as the full scale).
+        a_max, w_max = c.accel_full_scale, c.gyro_full_scale
+        accel = np.clip(f + self.accel_bias + c.accel_noise * noise[..., 0:3], -a_max, a_max)
+        gyro = np.clip(w + self.gyro_bias + c.gyro_noise * noise[..., 3:6], -w_max, w_max)
         mag = m + c.mag_noise * noise[..., 6:9]
         return accel, gyro, mag
 
