@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import inspect
+import os
 from typing import TYPE_CHECKING
 
 from tensegrity_gym.envs.roll_env import TensegrityEnv
+from tensegrity_gym.model.checks import check_number
 from tensegrity_gym.model.description import RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator
 from tensegrity_gym.tasks.roll import RollTask
@@ -126,6 +128,29 @@ def make_backend(
     return backend
 
 
+def _check_arguments(
+    *,
+    render_mode: object,
+    record_dir: object,
+    spawn_radius: object,
+    control_period: object,
+    time_step: object,
+) -> None:
+    """Refuse a bad argument of ``make`` by name, before anything is built."""
+    modes = TensegrityEnv.metadata["render_modes"]
+    if render_mode is not None and render_mode not in modes:
+        raise ValueError(f"make: render_mode={render_mode!r} is not one of {[None, *modes]}")
+    if record_dir is not None and not isinstance(record_dir, (str, os.PathLike)):
+        raise ValueError(f"make: record_dir={record_dir!r} must be a folder path or None")
+    check_number("spawn_radius", spawn_radius, non_negative=True)
+    period = check_number("control_period", control_period, positive=True)
+    step = check_number("time_step", time_step, positive=True)
+    if step > period:
+        raise ValueError(
+            f"make: time_step={time_step!r} is longer than control_period={control_period!r}"
+        )
+
+
 def make_roll_env(
     robot: str | Path | RobotDescription = "three_bar",
     *,
@@ -162,6 +187,16 @@ def make_roll_env(
     est_name = estimator if isinstance(estimator, str) else None
     if est_name is not None and est_name not in ESTIMATORS:
         raise ValueError(f"unknown estimator {est_name!r}; valid choices: {list(ESTIMATORS)}")
+    _check_arguments(
+        render_mode=render_mode,
+        record_dir=record_dir,
+        spawn_radius=spawn_radius,
+        control_period=control_period,
+        time_step=time_step,
+    )
+    # The task checks its own arguments before anything is started.
+    RollTask(description, goal_heading=goal_heading, goal_distance=goal_distance,
+             ctrl_cost=ctrl_cost, control_period=control_period)  # fmt: skip
     backend = make_backend(
         description,
         driver,
@@ -183,6 +218,10 @@ def make_roll_env(
         backend = RecordingBackend(backend, sink)
         est = RecordingEstimator(est, sink, backend)
     task = RollTask(
-        description, goal_heading=goal_heading, goal_distance=goal_distance, ctrl_cost=ctrl_cost
+        description,
+        goal_heading=goal_heading,
+        goal_distance=goal_distance,
+        ctrl_cost=ctrl_cost,
+        control_period=backend.control_period,  # a replayed bag's own period
     )
     return TensegrityEnv(backend, est, task, render_mode=render_mode)

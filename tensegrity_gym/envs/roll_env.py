@@ -38,8 +38,11 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     outside [-1, 1] are clipped silently; NaN or inf raises ``ValueError``.
 
     ``info`` holds ``com_estimate`` (m, (3,)), ``progress`` (m along the goal),
-    ``estimator_healthy``, ``estimator_reinitialised``, ``sim_diverged`` and, where the
-    backend has ground truth, ``com_true`` and ``estimation_error`` (CoM distance, m).
+    ``estimator_healthy``, ``estimator_reinitialised``, ``estimator_failed_streams``
+    (streams the estimator stopped fusing as implausible), ``estimator_rejected``
+    (implausible measurements by kind), ``reward_rejected`` (why a step earned no reward,
+    else None), ``sim_diverged`` and, where the backend has ground truth, ``com_true`` and
+    ``estimation_error`` (CoM distance, m).
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}  # noqa: RUF012
@@ -106,6 +109,9 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             "estimator_healthy": estimate.healthy,
             "estimator_reinitialised": estimate.reinitialised,
             "sim_diverged": diverged,
+            "estimator_failed_streams": list(estimate.failed_streams),
+            "estimator_rejected": dict(estimate.rejected or {}),
+            "reward_rejected": None,
         }
         truth = None if diverged else self.backend.ground_truth()
         if truth is not None:
@@ -122,10 +128,13 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         try:
             return self._reset()
         except BaseException:
-            self._stop_backend()
+            self.stop_backend()
             raise
 
     def _reset(self) -> tuple[NDArray[np.float32], dict[str, Any]]:
+        # Until this reset succeeds there is no episode: a step must not command the robot
+        # from the previous one's state.
+        self._estimate = self._observation = None
         start = self._reset_backend()
         d = self.backend.description
         command = d.rest_lengths[d.actuated].copy()  # the motors hold their initial lengths
@@ -165,10 +174,12 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         try:
             return self._step(action)
         except BaseException:  # Ctrl-C included: a robot holds its motors first
-            self._stop_backend()
+            self.stop_backend()
             raise
 
-    def _stop_backend(self) -> None:
+    def stop_backend(self) -> None:
+        """Hold the motors now (``Backend.stop``); a failure to do so is logged, not raised,
+        so that the exception that called for it is the one the user sees."""
         try:
             self.backend.stop()
         except Exception:
@@ -178,7 +189,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         if self._estimate is None or self._observation is None:
-            raise RuntimeError("call reset() before step()")
+            raise RuntimeError("call reset() before step() (and again after a reset that failed)")
         a = self._check_action(action)
         targets = self.action_to_targets(a)
         result = self.backend.step(targets)
@@ -195,9 +206,11 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self._estimate = estimate
         self._observation = self.task.observation(estimate)
         reward = self.task.reward(previous, estimate, np.clip(a, -1.0, 1.0).astype(np.float32))
+        rejected = self.task.implausible_step(previous, estimate)
         if not np.isfinite(reward):
-            reward = 0.0
+            reward, rejected = 0.0, rejected or f"the reward was {reward}"
         info = self._info(estimate)
+        info["reward_rejected"] = rejected
         info.update(result.info)
         if self.render_mode == "human":
             self.render()

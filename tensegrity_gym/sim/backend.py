@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.samples import Sample
     from tensegrity_gym.sim.world import Snapshot
 
-__all__ = ["SimBackend", "settled_pose"]
+__all__ = ["SettleError", "SimBackend", "check_sensor_rates", "settled_pose"]
 
 # A state whose nodes move faster than this, or leave this box, has blown up.
 _MAX_SPEED = 50.0  # m/s
@@ -71,14 +71,89 @@ def settled_pose(
             prev = x[-1]
             if np.linalg.norm(steps, axis=-1).max() < _REST_NODE_SPEED * every * time_step:
                 break
+            if not np.all(np.isfinite(prev)):
+                break  # blown up: no amount of settling brings it back
         pos, orn, _, _ = world.rod_states()
     finally:
         world.close()
     positions = np.array(pos)
+    _check_settled(description, time_step, positions, np.array(orn))
     masses = np.array([r.mass for r in description.rods])
     com = (positions * masses[:, None]).sum(axis=0) / masses.sum()
     positions[:, :2] -= com[:2]
     return positions, np.array(orn)
+
+
+class SettleError(ValueError):
+    """The robot's simulation blew up while it settled before the first episode."""
+
+
+def _check_settled(
+    description: RobotDescription,
+    time_step: float,
+    positions: NDArray[np.float64],
+    quaternions: NDArray[np.float64],
+) -> None:
+    """Raise :class:`SettleError` naming the likely cause if the settled rods, centres
+    (r, 3) and quaternions (r, 4), are not finite or not resting near the ground."""
+    span = sum(r.length for r in description.rods)
+    finite = np.all(np.isfinite(positions)) and np.all(np.isfinite(quaternions))
+    centre = positions.mean(axis=0) if finite else np.zeros(3)
+    spread = np.linalg.norm(positions - centre, axis=-1).max() if finite else 0.0
+    if finite and -span < centre[2] < span and spread < span:
+        return
+    where = f"{description.source or description.name}: " if description.source else ""
+    raise SettleError(
+        f"{where}the simulation diverged while the robot settled (time_step={time_step} s): "
+        f"{_stiffness_hint(description, time_step)}"
+    )
+
+
+def _stiffness_hint(description: RobotDescription, time_step: float) -> str:
+    """Which parameter most likely made the integration unstable: the cable whose
+    spring-mass period is the shortest for the time step, or a general pointer."""
+    masses = np.array([r.mass for r in description.rods])
+    worst, worst_ratio = -1, 0.0
+    for k, cable in enumerate(description.cables):
+        m1, m2 = masses[description.node_rod[list(cable.nodes)]]
+        reduced = m1 * m2 / (m1 + m2)
+        # The explicit spring step is stable for omega * dt < 2 (and damping c/m * dt < 2).
+        ratio = max(np.sqrt(cable.stiffness / reduced), cable.damping / reduced) * time_step
+        if ratio > worst_ratio:
+            worst, worst_ratio = k, ratio
+    if worst_ratio > 0.5:
+        cable = description.cables[worst]
+        rods = [description.rods[i] for i in description.node_rod[list(cable.nodes)]]
+        return (
+            f"cables[{worst}] ({cable.name!r}, stiffness {cable.stiffness:g} N/m, damping "
+            f"{cable.damping:g} N s/m) between rods {rods[0].name!r} and {rods[1].name!r} "
+            f"({rods[0].mass:g} and {rods[1].mass:g} kg) is too stiff for their masses at "
+            f"this time step (omega * time_step = {worst_ratio:.3g}, stable below about 0.5); "
+            "lower time_step, or check that cable's stiffness and damping and the rods' masses"
+        )
+    return "lower time_step, or check the cables' stiffness and damping and the rods' masses"
+
+
+def check_sensor_rates(description: RobotDescription, time_step: float) -> None:
+    """Refuse a sensor faster than the physics: its samples would share stamps (and a
+    bag or the link would drop them as duplicates)."""
+    physics_rate = 1.0 / time_step
+    s = description.sensors
+    for name, rate in (
+        ("imu", s.imu.rate),
+        ("encoder", s.encoder.rate),
+        ("cable_length", s.cable_length.rate),
+        ("uwb", s.uwb.rate),
+        ("contact", s.contact.rate),
+        ("camera", s.camera.rate),
+    ):
+        if rate > physics_rate * (1.0 + 1e-9):
+            where = description.source or description.name
+            raise ValueError(
+                f"{where}: sensors.{name}.rate={rate:g} Hz is above the physics rate "
+                f"{physics_rate:g} Hz (time_step={time_step} s): its samples would repeat "
+                "stamps; lower the rate or the time_step"
+            )
 
 
 def _yaw_quaternion(yaw: float) -> NDArray[np.float64]:
@@ -131,6 +206,7 @@ class SimBackend:
             raise ValueError(
                 f"control_period={control_period} must be a whole multiple of time_step={time_step}"
             )
+        check_sensor_rates(description, time_step)
         self.description = description
         self.control_period = control_period
         self.time_step = time_step

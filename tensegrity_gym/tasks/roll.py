@@ -14,7 +14,9 @@ goal            (2,)        goal heading in the world frame, (cos, sin)
 ==============  ==========  ===================================================
 
 Reward per step: ``progress_weight * progress / L - ctrl_cost * mean(action**2)``,
-with ``progress`` the estimated CoM's displacement along the goal heading (m).
+with ``progress`` the estimated CoM's displacement along the goal heading (m). A step
+whose estimated CoM moved farther than the robot can travel in one period (an estimate
+that jumped) earns no progress: :meth:`RollTask.implausible_step` says why.
 """
 
 from __future__ import annotations
@@ -25,16 +27,21 @@ from typing import TYPE_CHECKING
 import numpy as np
 from gymnasium import spaces
 
+from tensegrity_gym.model.checks import check_number, check_optional_number
+
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.estimate import Estimate
 
-__all__ = ["RollObservation", "RollTask"]
+__all__ = ["RollObservation", "RollTask", "max_speed"]
 
 POSITION_BOUND = 2.0
 VELOCITY_BOUND = 10.0
+SPEED_MARGIN = 2.0
+"""The CoM's travel in a period is bounded by this many times the speed of a fall from
+the robot's own height (or its fastest motor, if faster)."""
 
 
 @dataclass(frozen=True)
@@ -58,6 +65,7 @@ class RollTask:
             (m) along the heading: the task is done.
         ctrl_cost: weight of the mean squared action.
         progress_weight: reward per rod length of progress.
+        control_period: seconds per step; bounds the progress a step can earn.
     """
 
     def __init__(
@@ -68,16 +76,16 @@ class RollTask:
         goal_distance: float | None = None,
         ctrl_cost: float = 0.05,
         progress_weight: float = 10.0,
+        control_period: float = 0.1,
     ) -> None:
-        if goal_distance is not None and goal_distance <= 0.0:
-            raise ValueError(f"goal_distance must be positive, got {goal_distance}")
-        if ctrl_cost < 0.0:
-            raise ValueError(f"ctrl_cost must not be negative, got {ctrl_cost}")
         self.description = description
-        self.goal_heading = goal_heading
-        self.goal_distance = goal_distance
-        self.ctrl_cost = ctrl_cost
-        self.progress_weight = progress_weight
+        self.goal_heading = check_optional_number("goal_heading", goal_heading)
+        self.goal_distance = check_optional_number("goal_distance", goal_distance, positive=True)
+        self.ctrl_cost = check_number("ctrl_cost", ctrl_cost, non_negative=True)
+        self.progress_weight = check_number("progress_weight", progress_weight)
+        period = check_number("control_period", control_period, positive=True)
+        self.max_step = period * max_speed(description)
+        """The farthest (m) the CoM can physically travel in one period."""
         self.scale = description.characteristic_length
         lo, hi, _ = description.motor_limits
         self._rest_lo, self._rest_span = lo, hi - lo
@@ -134,10 +142,35 @@ class RollTask:
         """Distance (m) the CoM has moved along the goal heading since the reset."""
         return float((estimate.com[:2] - self.start[:2]) @ self.direction)
 
+    def implausible_step(self, previous: Estimate, estimate: Estimate) -> str | None:
+        """Why the step from ``previous`` to ``estimate`` earns no reward at all (it is
+        farther than the robot can travel in a period, or not finite), else None."""
+        with np.errstate(invalid="ignore", over="ignore"):
+            moved = float(np.linalg.norm(estimate.com[:2] - previous.com[:2]))
+        if not np.isfinite(moved):
+            return "the estimated CoM is not finite"
+        if moved > self.max_step:
+            return (
+                f"the estimated CoM moved {moved:.3g} m in one period; the robot cannot "
+                f"travel more than {self.max_step:.3g} m"
+            )
+        return None
+
     def reward(self, previous: Estimate, estimate: Estimate, action: NDArray[np.float32]) -> float:
-        step = float((estimate.com[:2] - previous.com[:2]) @ self.direction)
+        if self.implausible_step(previous, estimate) is not None:
+            return 0.0
         cost = self.ctrl_cost * float(np.mean(np.square(action)))
+        step = float((estimate.com[:2] - previous.com[:2]) @ self.direction)
         return self.progress_weight * step / self.scale - cost
 
     def terminated(self, estimate: Estimate) -> bool:
         return self.goal_distance is not None and self.progress(estimate) >= self.goal_distance
+
+
+def max_speed(description: RobotDescription) -> float:
+    """A bound (m/s) on the CoM's horizontal speed: :data:`SPEED_MARGIN` times the speed
+    of a fall from the robot's resting span, or of its fastest motor if that is faster."""
+    x = description.initial_positions
+    span = float(np.max(np.linalg.norm(x[:, None] - x[None], axis=-1)))
+    fall = float(np.sqrt(2.0 * description.gravity * span))
+    return SPEED_MARGIN * max(fall, float(np.max(description.motor_limits[2])))

@@ -1,0 +1,49 @@
+"""Argument checks that name what is wrong: a NaN, an infinity or a zero where a positive
+number belongs is refused where it is given, not deep inside the simulation."""
+
+from __future__ import annotations
+
+import math
+from numbers import Real
+
+__all__ = ["check_number", "check_optional_number"]
+
+
+def check_number(
+    name: str,
+    value: object,
+    *,
+    positive: bool = False,
+    non_negative: bool = False,
+    where: str = "make",
+) -> float:
+    """``value`` as a float, or ValueError ``"{where}: {name}=...: must be ..."``.
+
+    Args:
+        name: the argument's name, as the user wrote it.
+        value: what was given; bools are refused (``True`` is no number of metres).
+        positive: refuse zero and below.
+        non_negative: refuse below zero.
+        where: the call that took the argument, for the message.
+    """
+    bound = " and > 0" if positive else " and >= 0" if non_negative else ""
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise ValueError(f"{where}: {name}={value!r} must be a finite number{bound}")
+    x = float(value)
+    if not math.isfinite(x) or (positive and x <= 0.0) or (non_negative and x < 0.0):
+        raise ValueError(f"{where}: {name}={value!r} must be a finite number{bound}")
+    return x
+
+
+def check_optional_number(
+    name: str,
+    value: object,
+    *,
+    positive: bool = False,
+    non_negative: bool = False,
+    where: str = "make",
+) -> float | None:
+    """As :func:`check_number`, with None passed through (an option left unset)."""
+    if value is None:
+        return None
+    return check_number(name, value, positive=positive, non_negative=non_negative, where=where)
