@@ -1141,8 +1141,9 @@ def test_a_non_finite_initial_pose_is_rejected(rolling: Recording) -> None:
 
 def test_garbage_samples_are_dropped(rolling: Recording) -> None:
     """Non-finite and malformed readings never reach the filter: the estimates equal
-    those of a filter that never received them (a garbage orientation, being the newest
-    of its rod, displaces that period's good one: the rod then has no axis row)."""
+    those of a filter that never received them, and they are counted by kind. (Before
+    the plausibility screen a garbage orientation, being the newest of its rod,
+    displaced that period's good one, and the rod had no axis row.)"""
     rec = rolling
     est, _ = _start(rec)
     clean, _ = _start(rec)
@@ -1159,11 +1160,18 @@ def test_garbage_samples_are_dropped(rolling: Recording) -> None:
             UwbRangeSample(t, np.array([t]), np.array([[0, 7]]), np.array([np.nan])),
         ]
         e = est.update([*step.samples, *garbage], step.command)
-        without = [s for s in step.samples if not isinstance(s, AhrsSample)]
-        ref = clean.update(without, step.command)
+        ref = clean.update(step.samples, step.command)
         np.testing.assert_allclose(e.node_positions, ref.node_positions, rtol=0, atol=1e-9)
         np.testing.assert_array_equal(e.rest_lengths, ref.rest_lengths)
         assert e.healthy and e.is_finite()
+    assert e.rejected == {
+        "ahrs_not_finite": 12,
+        "ahrs_not_unit": 6,
+        "encoder_not_finite": 6,
+        "uwb_bad_pair": 18,
+        "uwb_range_not_finite": 6,
+    }
+    assert ref.rejected == {} and e.failed_streams == ()
 
 
 # ----------------------------------------------------------------------------- the envs

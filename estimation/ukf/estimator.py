@@ -16,8 +16,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from estimation.plausibility import PlausibilityBounds
+from estimation.screen import PlausibilityScreen
 from estimation.ukf.filter import UnscentedKalmanFilter, UpdateResult, single_threaded_blas
-from estimation.ukf.initialise import InitialisationError, fit_initial_shape
+from estimation.ukf.initialise import MIN_ANCHOR_RANGES, InitialisationError, fit_initial_shape
 from estimation.ukf.measurements import (
     MeasurementBatch,
     MeasurementModel,
@@ -117,13 +119,26 @@ class UkfConfig:
     put the robot."""
     divergence_rod_strain: float = 0.25
     """A rod estimated this much longer or shorter (share of its length) is divergence."""
+    stream_failure_window: float = 1.0
+    """Seconds of nothing but physically implausible samples after which a sensor stream
+    is failed (``Estimate.failed_streams``) and not used, plausible or not, until it has
+    given only plausible samples this long again. One second is 15 UWB rounds, 10 cable
+    readings, 200 AHRS readings: no single garbled message fails a stream, a dead one is
+    dropped within a second, and a flickering one is not taken back at its first good
+    value."""
+    max_prediction_time: float = 0.5
+    """Seconds the filter may predict without fusing any sensor row (AHRS axis, range,
+    cable, contact; the rod-length pseudo-measurement does not count) before its estimate
+    is reported unhealthy: five control periods of the envs, in which a rolling 3-bar
+    moves some 5 cm on its model alone. Updates without any sample count as long as the
+    last update that had some."""
 
     def __post_init__(self) -> None:
         positive = (
             "position_noise", "velocity_noise", "axis_sigma", "range_sigma", "cable_sigma",
             "rod_length_sigma", "contact_sigma", "initial_position_sigma", "initial_shape_sigma",
             "initial_velocity_sigma", "range_window", "divergence_nis",
-            "divergence_rod_strain",
+            "divergence_rod_strain", "stream_failure_window", "max_prediction_time",
         )  # fmt: skip
         for name in positive:
             value = getattr(self, name)
@@ -170,12 +185,95 @@ class UkfDiagnostics:
     rows: int = 0
     rejected_rows: int = 0
     rejected_by_kind: dict[str, int] = field(default_factory=dict)
+    """Rows the chi-square gate rejected, by :class:`RowKind` name."""
+    implausible_by_kind: dict[str, int] = field(default_factory=dict)
+    """Readings dropped as physically implausible before the filter saw them, by kind
+    (``"uwb_range_too_long"``, ``"cable_negative"``, ...: :mod:`estimation.plausibility`)."""
     reinitialisations: int = 0
     covariance_resets: int = 0
     """Gate lock-outs answered by resetting the covariance."""
     jitter_events: int = 0
     last_update: UpdateResult | None = None
     nis_history: deque[float] = field(default_factory=lambda: deque(maxlen=1000))
+
+
+@dataclass(frozen=True, eq=False)
+class _Round:
+    """A UWB round as the filter keeps it: only its plausible ranges."""
+
+    t: float
+    pairs: NDArray[np.intp]
+    """(k, 2) module ids."""
+    ranges: NDArray[np.float64]
+    """(k,) m, pair offsets included."""
+    for_fit: NDArray[np.bool_]
+    """(k,) False where the chi-square gate rejected the range or a divergence blamed
+    its round: re-initialisation does not fit to those."""
+
+    @classmethod
+    def of(cls, sample: UwbRangeSample) -> _Round:
+        ranges = np.asarray(sample.ranges, dtype=np.float64).reshape(-1)
+        pairs = np.asarray(sample.pairs, dtype=np.intp).reshape(-1, 2)
+        return cls(sample.t, pairs, ranges, np.ones(len(ranges), dtype=bool))
+
+
+def _ranging(
+    config: UkfConfig, description: RobotDescription, calibration: SensorCalibration
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Anchor positions (a, 3) (m), the pair offsets the filter subtracts (m), and the
+    modules it uses, each (n_modules, n_modules) and (n_modules,); checks the inputs."""
+    c = config
+    n = description.n_nodes
+    anchors = np.asarray(calibration.anchors, dtype=np.float64).reshape(-1, 3)
+    n_modules = n + len(anchors)
+    offsets = np.asarray(calibration.uwb_offsets, dtype=np.float64)
+    if offsets.shape != (n_modules, n_modules):
+        raise ValueError(
+            f"calibration.uwb_offsets has shape {offsets.shape}, expected "
+            f"{(n_modules, n_modules)} for {n} nodes and {len(anchors)} anchors"
+        )
+    if c.constant_offset:
+        off_diag = ~np.eye(n_modules, dtype=bool)
+        offsets = np.where(off_diag, offsets[off_diag].mean(), 0.0)
+    allowed = np.ones(n_modules, dtype=bool)
+    if c.anchors is not None:
+        bad = [a for a in c.anchors if not 0 <= a < len(anchors)]
+        if bad:
+            raise ValueError(f"UkfConfig.anchors names anchors {bad}; the scene has {len(anchors)}")
+        allowed[n:] = False
+        allowed[[n + a for a in c.anchors]] = True
+    return anchors, offsets, allowed
+
+
+def _recent(rounds: Sequence[_Round], t: float, window: float) -> list[_Round]:
+    """The rounds no older than ``window`` seconds before ``t``."""
+    return [r for r in rounds if r.t >= t - window]
+
+
+def _select(
+    rounds: Sequence[_Round],
+    allowed: NDArray[np.bool_],
+    robot_ranges: bool,
+    n_nodes: int,
+    *,
+    for_fit: bool = False,
+) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.intp]]:
+    """The ranges of ``rounds`` the filter uses: pairs (r, 2), ranges (r,) (m), and their
+    places (r,) in the rounds' ranges laid end to end.
+
+    Only modules in ``allowed``; node-node ranges only if ``robot_ranges``; only the
+    ranges still marked ``for_fit`` if ``for_fit``.
+    """
+    if not rounds:
+        return np.zeros((0, 2), dtype=np.intp), np.zeros(0), np.zeros(0, dtype=np.intp)
+    pairs = np.concatenate([r.pairs for r in rounds])
+    ranges = np.concatenate([r.ranges for r in rounds])
+    keep = allowed[pairs].all(axis=1)
+    if not robot_ranges:
+        keep &= (pairs >= n_nodes).any(axis=1)
+    if for_fit:
+        keep &= np.concatenate([r.for_fit for r in rounds])
+    return pairs[keep], ranges[keep], np.flatnonzero(keep).astype(np.intp)
 
 
 class UkfEstimator:
@@ -209,6 +307,39 @@ class UkfEstimator:
         with single_threaded_blas():
             return self._reset(description, calibration, samples, command)
 
+    def initialisation_missing(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+    ) -> str | None:
+        """None if :meth:`reset` could start from ``samples``, else what is missing.
+
+        Counts, as the fit in ``reset`` does, the plausible UWB ranges to the anchors in
+        use within ``range_window`` of the newest sample; fits nothing. With
+        ``initial_positions`` nothing is needed. Raises as ``reset`` does on a malformed
+        calibration or config.
+        """
+        c = self.config
+        _, _, allowed = _ranging(c, description, calibration)
+        if c.initial_positions is not None:
+            return None
+        bounds = PlausibilityBounds.from_robot(description, calibration)
+        screen = PlausibilityScreen(description, bounds, c.stream_failure_window)
+        kept = screen.screen(samples)
+        rounds = [_Round.of(s) for s in kept if isinstance(s, UwbRangeSample)]
+        t = max((s.t for s in samples), default=0.0)
+        n = description.n_nodes
+        pairs, _, _ = _select(
+            _recent(rounds, t, c.range_window), allowed, c.use_robot_ranges, n, for_fit=True
+        )
+        found = int(np.count_nonzero((pairs >= n).any(axis=1)))
+        if found >= MIN_ANCHOR_RANGES:
+            return None
+        dropped = sum(v for kind, v in screen.rejected.items() if kind.startswith("uwb"))
+        note = f" ({dropped} implausible ones dropped)" if dropped else ""
+        return f"{found} UWB ranges to anchors, {MIN_ANCHOR_RANGES} needed{note}"
+
     def _reset(
         self,
         description: RobotDescription,
@@ -220,44 +351,33 @@ class UkfEstimator:
         d = description
         self.description = d
         self.model = SpringMassModel(d, c.model)
-        anchors = np.asarray(calibration.anchors, dtype=np.float64).reshape(-1, 3)
+        anchors, self.offsets, self._module_allowed = _ranging(c, d, calibration)
         self.measurements = MeasurementModel(d, anchors, d.sensors.uwb.module_offset)
         n = d.n_nodes
-        n_modules = n + len(anchors)
-        offsets = np.asarray(calibration.uwb_offsets, dtype=np.float64)
-        if offsets.shape != (n_modules, n_modules):
-            raise ValueError(
-                f"calibration.uwb_offsets has shape {offsets.shape}, expected "
-                f"{(n_modules, n_modules)} for {n} nodes and {len(anchors)} anchors"
-            )
-        if c.constant_offset:
-            off_diag = ~np.eye(n_modules, dtype=bool)
-            offsets = np.where(off_diag, offsets[off_diag].mean(), 0.0)
-        self.offsets = offsets
-        allowed = np.ones(n_modules, dtype=bool)
-        if c.anchors is not None:
-            bad = [a for a in c.anchors if not 0 <= a < len(anchors)]
-            if bad:
-                raise ValueError(
-                    f"UkfConfig.anchors names anchors {bad}; the scene has {len(anchors)}"
-                )
-            allowed[n:] = False
-            allowed[[n + a for a in c.anchors]] = True
-        self._module_allowed = allowed
         L = d.characteristic_length
         self._q_pos = (c.position_noise * L) ** 2
         self._q_vel = (c.velocity_noise * L) ** 2
         self._rest = np.asarray(command, dtype=np.float64).copy()
-        self._ranges: deque[UwbRangeSample] = deque()
-        # Readings not yet used by an update, and the latest of each for re-initialising.
+        self._ranges: list[_Round] = []
+        # Readings not yet used by an update, and the latest of each for re-initialising
+        # (of which the chi-square gate takes back what it rejects).
         self._axes: dict[int, NDArray[np.float64]] = {}
         self._cables: NDArray[np.float64] | None = None
         self._contacts: NDArray[np.intp] | None = None
         self._latest_axes: dict[int, NDArray[np.float64]] = {}
+        self._axes_before: dict[int, NDArray[np.float64] | None] = {}
         self._latest_cables: NDArray[np.float64] | None = None
         self._latest_contacts: NDArray[np.intp] | None = None
+        self._period_rounds: list[_Round] = []
+        self._period_range_index = np.zeros(0, dtype=np.intp)
         self._t = max((s.t for s in samples), default=0.0)
+        self._uncorrected = 0.0  # s predicted without a sensor row fused
+        self._period = 0.0  # s spanned by the last update with samples
         self.diagnostics = UkfDiagnostics()
+        bounds = PlausibilityBounds.from_robot(d, calibration)
+        self._screen = PlausibilityScreen(
+            d, bounds, c.stream_failure_window, self.diagnostics.implausible_by_kind
+        )
         self._absorb(samples)
         if c.initial_positions is not None:
             nodes = np.asarray(c.initial_positions, dtype=np.float64)
@@ -273,9 +393,12 @@ class UkfEstimator:
         self._ready = True
         return self._estimate(reinitialised=False)
 
-    def _fit(self, exclude_latest: int = 0) -> NDArray[np.float64]:
+    def _fit(self) -> NDArray[np.float64]:
         c = self.config
-        pairs, ranges = self._recent_ranges(exclude_latest)
+        pairs, ranges, _ = _select(
+            self._ranges, self._module_allowed, c.use_robot_ranges, self.description.n_nodes,
+            for_fit=True,
+        )  # fmt: skip
         return fit_initial_shape(
             self.description,
             self.measurements,
@@ -310,7 +433,6 @@ class UkfEstimator:
         self._updates_since_reset: int | None = None  # no covariance reset yet
         self._updates_since_start = 0
         self._last_range_reject: float | None = None
-        self._rounds_this_period = 0
 
     def _clear_lockout(self) -> None:
         self._range_rejects: deque[float] = deque(maxlen=self.config.lockout_updates)
@@ -318,83 +440,51 @@ class UkfEstimator:
 
     # ------------------------------------------------------------------ samples
 
-    def _absorb(self, samples: Sequence[Sample]) -> tuple[list[UwbRangeSample], bool]:
+    def _absorb(self, samples: Sequence[Sample]) -> tuple[list[_Round], bool]:
         """Keep the latest of each sensor; return this period's UWB rounds and whether
-        an encoder reading arrived."""
-        rounds: list[UwbRangeSample] = []
-        encoder = False
+        an encoder reading arrived.
+
+        Only what the plausibility screen passes is kept; the clock still advances with
+        every sample, plausible or not.
+        """
+        if samples:
+            self._t = max(self._t, max(s.t for s in samples))
+        rounds: list[_Round] = []
         latest_ahrs: dict[int, AhrsSample] = {}
         encoders: list[EncoderSample] = []
         latest_cables: CableLengthSample | None = None
         latest_contacts: ContactSample | None = None
         # Most samples are raw IMU readings, which the filter does not use; of the
         # rest only the newest of each kind counts, except the UWB rounds.
-        for s in samples:
+        for s in self._screen.screen(samples):
             if isinstance(s, ImuSample):
                 continue
             if isinstance(s, AhrsSample):
                 latest_ahrs[s.rod] = s
             elif isinstance(s, UwbRangeSample):
-                rounds.append(s)
-                self._ranges.append(s)
+                rounds.append(_Round.of(s))
             elif isinstance(s, EncoderSample):
                 encoders.append(s)
             elif isinstance(s, CableLengthSample):
                 latest_cables = s
             elif isinstance(s, ContactSample):
                 latest_contacts = s
-        for reading in reversed(encoders):
-            if np.all(np.isfinite(reading.rest_lengths)):
-                self._rest = np.asarray(reading.rest_lengths, dtype=np.float64)
-                encoder = True
-                break
+        if encoders:
+            self._rest = np.asarray(encoders[-1].rest_lengths, dtype=np.float64)
         if latest_cables is not None:
             self._cables = np.asarray(latest_cables.lengths, dtype=np.float64)
             self._latest_cables = self._cables
         if latest_contacts is not None:
             self._contacts = np.flatnonzero(latest_contacts.in_contact).astype(np.intp)
             self._latest_contacts = self._contacts
+        self._axes_before = {}
         for rod, sample in latest_ahrs.items():
             q = np.asarray(sample.quaternion, dtype=np.float64)
-            norm = float(np.linalg.norm(q)) if q.shape == (4,) else 0.0
-            if np.isfinite(norm) and norm > 0.5:
-                self._axes[rod] = ahrs_axis(q / norm)
-                self._latest_axes[rod] = self._axes[rod]
-        if samples:
-            self._t = max(self._t, max(s.t for s in samples))
-        while self._ranges and self._ranges[0].t < self._t - self.config.range_window:
-            self._ranges.popleft()
-        return rounds, encoder
-
-    def _select_ranges(
-        self, rounds: Sequence[UwbRangeSample]
-    ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-        if not rounds:
-            return np.zeros((0, 2), dtype=np.intp), np.zeros(0)
-        pairs = np.concatenate([np.asarray(r.pairs, dtype=np.intp).reshape(-1, 2) for r in rounds])
-        ranges = np.concatenate([np.asarray(r.ranges, dtype=np.float64) for r in rounds])
-        n_modules = len(self._module_allowed)
-        keep = (
-            np.isfinite(ranges)
-            & (pairs >= 0).all(axis=1)
-            & (pairs < n_modules).all(axis=1)
-            & (pairs[:, 0] != pairs[:, 1])
-        )
-        pairs, ranges = pairs[keep], ranges[keep]
-        keep = self._module_allowed[pairs].all(axis=1)
-        if not self.config.use_robot_ranges:
-            keep &= (pairs >= self.description.n_nodes).any(axis=1)
-        return pairs[keep], ranges[keep]
-
-    def _recent_ranges(
-        self, exclude_latest: int = 0
-    ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
-        """The buffered UWB rounds, without the ``exclude_latest`` newest where older
-        ones remain."""
-        rounds = list(self._ranges)
-        if 0 < exclude_latest < len(rounds):
-            rounds = rounds[:-exclude_latest]
-        return self._select_ranges(rounds)
+            self._axes_before[rod] = self._latest_axes.get(rod)
+            self._axes[rod] = ahrs_axis(q / np.linalg.norm(q))
+            self._latest_axes[rod] = self._axes[rod]
+        self._ranges = _recent([*self._ranges, *rounds], self._t, self.config.range_window)
+        return rounds, bool(encoders)
 
     # ------------------------------------------------------------------ filtering
 
@@ -413,14 +503,19 @@ class UkfEstimator:
             log.warning("UKF numerics failed (%s); re-initialising", err)
             return self._reinitialise()
         self._record(step.batch, result)
+        self._forget_gated(step.batch, result)
+        self._count_prediction(step, result)
         self._updates_since_start += 1
         reason = self._divergence()
         if reason is not None:
             log.info("UKF diverged (%s); re-initialising", reason)
-            # If this period's anchor ranges were what disagreed, they may be the bad
-            # ones (a corrupted round): fit to the rounds before them.
-            jumped = reason == _JUMPED
-            return self._reinitialise(exclude_latest=self._rounds_this_period if jumped else 0)
+            if reason == _JUMPED:
+                # This period's anchor ranges were what disagreed: they may be the bad
+                # ones (a corrupted round), so none of its rounds is fitted to, even
+                # the ranges the gate let through.
+                for r in self._period_rounds:
+                    r.for_fit[:] = False
+            return self._reinitialise()
         if self._updates_since_reset is not None:
             self._updates_since_reset += 1
         if self._locked_out():
@@ -461,7 +556,6 @@ class UkfEstimator:
         t_before = self._t
         rest_before = self._rest.copy()
         rounds, encoder = self._absorb(samples)
-        self._rounds_this_period = len(rounds)
         if not encoder and np.all(np.isfinite(command)):
             # No encoder reading this period: trust that the motors follow the command.
             self._rest = np.asarray(command, dtype=np.float64)
@@ -487,10 +581,15 @@ class UkfEstimator:
             self.config.gate_probability if self._gating else None,
         )
 
-    def _batch(self, rounds: Sequence[UwbRangeSample]) -> MeasurementBatch:
+    def _batch(self, rounds: list[_Round]) -> MeasurementBatch:
         c = self.config
-        pairs, ranges = self._select_ranges(rounds) if c.use_ranges else (None, None)
-        offsets = None if pairs is None else self.offsets[pairs[:, 0], pairs[:, 1]]
+        pairs, ranges, index = _select(
+            rounds if c.use_ranges else [],
+            self._module_allowed, c.use_robot_ranges, self.description.n_nodes,
+        )  # fmt: skip
+        # Which buffered ranges the rows are, for the gate's verdicts to reach them.
+        self._period_rounds, self._period_range_index = rounds, index
+        offsets = self.offsets[pairs[:, 0], pairs[:, 1]]
         L = self.description.characteristic_length
         batch = self.measurements.batch(
             axes=self._axes if c.use_imu else None,
@@ -544,6 +643,47 @@ class UkfEstimator:
             diag.nis_history.append(nis)
             self._nis_window.append(nis)
 
+    def _forget_gated(self, batch: MeasurementBatch, result: UpdateResult) -> None:
+        """Take back from re-initialisation every reading the chi-square gate rejected:
+        a range is marked not to fit, a rod's axis reverts to its last accepted one, a
+        cable's reading and a contact are dropped."""
+        rejected = ~result.accepted
+        if not rejected.any():
+            return
+        ranges = rejected[batch.kind == RowKind.RANGE]
+        if ranges.any():
+            flat = self._period_range_index[ranges]
+            sizes = np.array([len(r.ranges) for r in self._period_rounds])
+            ends = np.cumsum(sizes)
+            which = np.searchsorted(ends, flat, side="right")
+            for j, k in zip(which, flat - (ends - sizes)[which], strict=True):
+                self._period_rounds[j].for_fit[k] = False
+        if batch.axis_rods.size:
+            gated = rejected[: 3 * batch.axis_rods.size].reshape(-1, 3).any(axis=1)
+            for rod in batch.axis_rods[gated].tolist():
+                before = self._axes_before.get(rod)
+                if before is None:
+                    self._latest_axes.pop(rod, None)
+                else:
+                    self._latest_axes[rod] = before
+        cables = batch.cables[rejected[batch.kind == RowKind.CABLE_LENGTH]]
+        if cables.size and self._latest_cables is not None:
+            self._latest_cables = self._latest_cables.copy()
+            self._latest_cables[cables] = np.nan
+        contacts = batch.contact_nodes[rejected[batch.kind == RowKind.CONTACT_HEIGHT]]
+        if contacts.size and self._latest_contacts is not None:
+            self._latest_contacts = np.setdiff1d(self._latest_contacts, contacts)
+
+    def _count_prediction(self, step: FilterStep, result: UpdateResult) -> None:
+        """Add up the time predicted since a sensor row was last fused."""
+        if np.any(result.accepted & (step.batch.kind != RowKind.ROD_LENGTH)):
+            self._uncorrected = 0.0
+        else:
+            # An update without samples spans no sample time: count it as the last did.
+            self._uncorrected += step.duration if step.duration > 0 else self._period
+        if step.duration > 0:
+            self._period = step.duration
+
     def _divergence(self) -> str | None:
         """Why the filter has diverged, or None."""
         c = self.config
@@ -566,10 +706,10 @@ class UkfEstimator:
             return "innovations too large"
         return None
 
-    def _reinitialise(self, exclude_latest: int = 0) -> Estimate:
+    def _reinitialise(self) -> Estimate:
         self.diagnostics.reinitialisations += 1
         try:
-            nodes = self._fit(exclude_latest)
+            nodes = self._fit()
         except (InitialisationError, ValueError, np.linalg.LinAlgError) as err:
             log.warning("UKF re-initialisation failed (%s); keeping the last estimate", err)
             x = self.filter.x
@@ -581,6 +721,7 @@ class UkfEstimator:
             self._start(nodes)
             return replace(self._estimate(reinitialised=True), healthy=False)
         self._start(nodes)
+        self._uncorrected = 0.0  # placed by the samples just now
         return self._estimate(reinitialised=True)
 
     def _estimate(self, *, reinitialised: bool) -> Estimate:
@@ -596,6 +737,8 @@ class UkfEstimator:
             com=center_of_mass(nodes, d.node_masses),
             rest_lengths=self._rest.copy(),
             covariance=self.filter.P.copy(),
-            healthy=not reinitialised,
+            healthy=not reinitialised and self._uncorrected <= self.config.max_prediction_time,
             reinitialised=reinitialised,
+            failed_streams=self._screen.failed,
+            rejected=dict(self.diagnostics.implausible_by_kind),
         )

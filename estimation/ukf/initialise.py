@@ -26,7 +26,11 @@ if TYPE_CHECKING:
     from estimation.ukf.measurements import MeasurementModel
     from tensegrity_gym.model.description import RobotDescription
 
-__all__ = ["InitialFit", "InitialisationError", "fit_initial_shape"]
+__all__ = ["MIN_ANCHOR_RANGES", "InitialFit", "InitialisationError", "fit_initial_shape"]
+
+MIN_ANCHOR_RANGES = 4
+"""UWB ranges to anchors the fit needs: three place a point, a fourth resolves the
+mirror image through the anchors' plane."""
 
 
 class InitialisationError(RuntimeError):
@@ -73,17 +77,17 @@ def fit_initial_shape(
         contact_nodes: nodes that touch the ground.
 
     Raises:
-        InitialisationError: fewer than 4 ranges reach the anchors.
+        InitialisationError: fewer than :data:`MIN_ANCHOR_RANGES` ranges reach the anchors.
     """
     d = description
     n = d.n_nodes
     pairs = np.asarray(range_pairs, dtype=np.intp).reshape(-1, 2)
     ranges = np.asarray(ranges, dtype=np.float64)
     to_anchor = (pairs >= n).any(axis=1)
-    if np.count_nonzero(to_anchor) < 4:
+    if np.count_nonzero(to_anchor) < MIN_ANCHOR_RANGES:
         raise InitialisationError(
-            f"{np.count_nonzero(to_anchor)} UWB ranges to anchors arrived; at least 4 are "
-            "needed to place the robot"
+            f"{np.count_nonzero(to_anchor)} UWB ranges to anchors arrived; at least "
+            f"{MIN_ANCHOR_RANGES} are needed to place the robot"
         )
     template = d.initial_positions - d.initial_positions.mean(axis=0)
     rod_len = np.array([r.length for r in d.rods])

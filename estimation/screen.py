@@ -1,0 +1,232 @@
+"""Screening raw samples before an estimator keeps them.
+
+:class:`PlausibilityScreen` passes on the plausible part of each sample (by the bounds of
+:mod:`estimation.plausibility`), counts what it drops by kind, and follows each sensor
+stream with a :class:`StreamMonitor`: a stream that has given nothing plausible for a
+while is failed, and nothing of it is passed on, plausible or not, until it has given
+only plausible samples for as long again. Time is the samples' own (s).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from tensegrity_gym.model.samples import (
+    AhrsSample,
+    CableLengthSample,
+    EncoderSample,
+    ImuSample,
+    UwbRangeSample,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
+    from numpy.typing import ArrayLike, NDArray
+
+    from estimation.plausibility import PlausibilityBounds, Verdict
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.samples import Sample
+
+__all__ = ["PlausibilityScreen", "StreamMonitor"]
+
+
+class StreamMonitor:
+    """Fails a stream that has given only implausible samples for ``window`` seconds, and
+    restores it once it has given only plausible ones for ``window`` seconds.
+
+    A sample that agrees with the stream's state (plausible while in use, implausible
+    while failed) ends any run toward a change; silence is no evidence either way.
+    """
+
+    def __init__(self, window: float) -> None:
+        self.window = float(window)
+        self._failed: set[str] = set()
+        self._since: dict[str, float] = {}
+        """Per stream, the time of the first sample of the current run that disagrees."""
+
+    def observe(self, stream: str, t: float, plausible: bool) -> bool:
+        """Record one sample of ``stream`` at ``t`` (s); True if the stream is in use."""
+        failed = stream in self._failed
+        if plausible != failed:
+            self._since.pop(stream, None)
+            return not failed
+        start = self._since.setdefault(stream, t)
+        if t - start >= self.window:
+            del self._since[stream]
+            if failed:
+                self._failed.discard(stream)
+            else:
+                self._failed.add(stream)
+            failed = not failed
+        return not failed
+
+    @property
+    def failed(self) -> tuple[str, ...]:
+        """The failed streams, sorted."""
+        return tuple(sorted(self._failed))
+
+
+def _vector(values: ArrayLike, width: int) -> NDArray[np.float64]:
+    """``values`` as a (width,) vector, or NaN where it is of another size."""
+    x = np.asarray(values, dtype=np.float64).reshape(-1)
+    return x if x.shape == (width,) else np.full(width, np.nan)
+
+
+class PlausibilityScreen:
+    """Drops implausible readings and the samples of failed streams.
+
+    Streams: ``"uwb"`` (all ranges); ``"uwb/<node>"`` and ``"uwb/anchor<k>"`` (the ranges
+    of one module, judged only in rounds with some plausible range, so that a stream
+    failed as a whole is not reported once per module); ``"ahrs/<rod>"`` and
+    ``"imu/<rod>"`` by rod name; ``"cable_lengths"``; ``"encoders"``. Other samples
+    pass untouched. A UWB round loses its implausible ranges, a cable sample has its
+    implausible entries set to NaN (no reading); other samples pass whole or not at all.
+
+    Args:
+        description: the robot (names of rods and nodes, sizes of readings).
+        bounds: what is plausible.
+        window: seconds of only implausible samples that fail a stream, and of only
+            plausible ones that restore it.
+        counts: where to count rejected readings by kind (a new dict if None).
+    """
+
+    def __init__(
+        self,
+        description: RobotDescription,
+        bounds: PlausibilityBounds,
+        window: float,
+        counts: dict[str, int] | None = None,
+    ) -> None:
+        d = description
+        self.bounds = bounds
+        self.monitor = StreamMonitor(window)
+        self.rejected = counts if counts is not None else {}
+        self._rods = [r.name for r in d.rods]
+        n_anchors = bounds.n_modules - d.n_nodes
+        self._modules = [f"uwb/{n.name}" for n in d.nodes]
+        self._modules += [f"uwb/anchor{k}" for k in range(n_anchors)]
+        self._n_cables = d.n_cables
+        self._n_actuated = d.n_actuated
+
+    @property
+    def failed(self) -> tuple[str, ...]:
+        """The failed streams, sorted."""
+        return self.monitor.failed
+
+    def screen(self, samples: Sequence[Sample]) -> list[Sample]:
+        """The samples to use, in their order."""
+        out: list[Sample | None] = list(samples)
+        # IMU, AHRS and encoder readings come many a period: judged as one batch each.
+        batched: tuple[tuple[type, Callable[[list[Any]], list[Sample | None]]], ...] = (
+            (ImuSample, self._imu),
+            (AhrsSample, self._ahrs),
+            (EncoderSample, self._encoders),
+        )
+        for kind, judge in batched:
+            where = [i for i, s in enumerate(samples) if isinstance(s, kind)]
+            if where:
+                for i, kept in zip(where, judge([samples[i] for i in where]), strict=True):
+                    out[i] = kept
+        for i, s in enumerate(samples):
+            if isinstance(s, UwbRangeSample):
+                out[i] = self._round(s)
+            elif isinstance(s, CableLengthSample):
+                out[i] = self._cables(s)
+        return [s for s in out if s is not None]
+
+    def _count(self, kind: str, n: int) -> None:
+        if n:
+            self.rejected[kind] = self.rejected.get(kind, 0) + n
+
+    def _count_verdict(self, verdict: Verdict, among: NDArray[np.bool_] | None = None) -> None:
+        for kind, mask in verdict.reasons.items():
+            self._count(kind, int(np.count_nonzero(mask if among is None else mask & among)))
+
+    def _per_rod(
+        self, samples: Sequence[ImuSample | AhrsSample], verdict: Verdict, prefix: str
+    ) -> list[bool]:
+        """Count and monitor the per-rod streams ``prefix/<rod>``; True for samples to use."""
+        valid = np.array([0 <= s.rod < len(self._rods) for s in samples], dtype=bool)
+        self._count(f"{prefix}_bad_rod", int(np.count_nonzero(~valid)))
+        self._count_verdict(verdict, valid)
+        use = []
+        for s, ok, rod_ok in zip(samples, verdict.plausible, valid, strict=True):
+            in_use = rod_ok and self.monitor.observe(f"{prefix}/{self._rods[s.rod]}", s.t, ok)
+            use.append(bool(in_use and ok))
+        return use
+
+    def _imu(self, samples: list[ImuSample]) -> list[Sample | None]:
+        accel = np.stack([_vector(s.accel, 3) for s in samples])
+        gyro = np.stack([_vector(s.gyro, 3) for s in samples])
+        use = self._per_rod(samples, self.bounds.imu(accel, gyro), "imu")
+        return [s if u else None for s, u in zip(samples, use, strict=True)]
+
+    def _ahrs(self, samples: list[AhrsSample]) -> list[Sample | None]:
+        q = np.stack([_vector(s.quaternion, 4) for s in samples])
+        use = self._per_rod(samples, self.bounds.ahrs(q), "ahrs")
+        return [s if u else None for s, u in zip(samples, use, strict=True)]
+
+    def _encoders(self, samples: list[EncoderSample]) -> list[Sample | None]:
+        rest = np.stack([_vector(s.rest_lengths, self._n_actuated) for s in samples])
+        verdict = self.bounds.encoders(rest)
+        self._count_verdict(verdict)
+        out: list[Sample | None] = []
+        for s, ok in zip(samples, verdict.plausible, strict=True):
+            in_use = self.monitor.observe("encoders", s.t, bool(ok))
+            out.append(s if in_use and ok else None)
+        return out
+
+    def _cables(self, sample: CableLengthSample) -> CableLengthSample | None:
+        x = np.asarray(sample.lengths, dtype=np.float64).reshape(-1)
+        if x.shape != (self._n_cables,):
+            self._count("cable_wrong_size", 1)
+            return None
+        verdict = self.bounds.cables(x)
+        self._count_verdict(verdict)
+        present = ~np.isnan(x)
+        if not present.any():
+            return sample  # no reading at all: no evidence either way
+        ok = verdict.plausible
+        if not (self.monitor.observe("cable_lengths", sample.t, bool(ok.any())) and ok.any()):
+            return None
+        if np.array_equal(ok, present):
+            return sample
+        return CableLengthSample(sample.t, np.where(ok, x, np.nan))
+
+    def _round(self, sample: UwbRangeSample) -> UwbRangeSample | None:
+        pairs = np.asarray(sample.pairs, dtype=np.intp)
+        ranges = np.asarray(sample.ranges, dtype=np.float64).reshape(-1)
+        times = np.asarray(sample.times, dtype=np.float64).reshape(-1)
+        if pairs.size != 2 * ranges.size or times.size != ranges.size:
+            self._count("uwb_malformed_round", 1)
+            return None
+        pairs = pairs.reshape(-1, 2)
+        verdict = self.bounds.uwb(pairs, ranges)
+        self._count_verdict(verdict)
+        ok = verdict.plausible
+        if not (self.monitor.observe("uwb", sample.t, bool(ok.any())) and ok.any()):
+            return None
+        keep = ok & self._modules_in_use(sample.t, pairs, ok)
+        if keep.all():
+            return sample
+        if not keep.any():
+            return None
+        return UwbRangeSample(sample.t, times[keep], pairs[keep], ranges[keep])
+
+    def _modules_in_use(
+        self, t: float, pairs: NDArray[np.intp], plausible: NDArray[np.bool_]
+    ) -> NDArray[np.bool_]:
+        """Monitor each module of a round; (k,) True where both modules are in use."""
+        n = len(self._modules)
+        valid = np.asarray(((pairs >= 0) & (pairs < n)).all(axis=1))
+        flat = pairs[valid].ravel()
+        seen = np.bincount(flat, minlength=n) > 0
+        good = np.bincount(flat, weights=np.repeat(plausible[valid], 2), minlength=n) > 0
+        in_use = np.ones(n, dtype=bool)
+        for m in np.flatnonzero(seen):
+            in_use[m] = self.monitor.observe(self._modules[m], t, bool(good[m]))
+        safe = np.where(valid[:, None], pairs, 0)
+        return np.asarray(valid & in_use[safe].all(axis=1))
