@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
@@ -18,6 +19,7 @@ from hardware.link import DriverTimeouts, LinkError, ZenohDriver
 from hardware.link.process import EmulatorProcess, free_port
 from tensegrity_gym.model.description import load_robot, robot_document
 from tensegrity_gym.model.estimate import Estimate
+from tensegrity_gym.model.samples import ImuSample
 from tensegrity_gym.sim.backend import SettleError, SimBackend
 from tensegrity_gym.tasks.roll import RollTask
 
@@ -305,3 +307,18 @@ def test_an_env_made_before_the_robot_is_up_works_once_it_is() -> None:
             assert not info["link_stalled"]
     finally:
         env.close()
+
+
+def test_the_simulated_imu_saturates_at_its_full_scale() -> None:
+    """An IMU reports no more than its full scale: with a 2 m/s^2 accelerometer at rest
+    (gravity alone reads 9.81 m/s^2) readings are clipped there."""
+    imu = replace(THREE_BAR.sensors.imu, accel_full_scale=2.0, gyro_full_scale=1e-3)
+    d = replace(THREE_BAR, sensors=replace(THREE_BAR.sensors, imu=imu))
+    backend = SimBackend(d)
+    backend.reset(np.random.default_rng(0))
+    samples = [s for s in backend.step(d.rest_lengths[d.actuated]).samples
+               if isinstance(s, ImuSample)]  # fmt: skip
+    backend.close()
+    accel = np.array([s.accel for s in samples])
+    gyro = np.array([s.gyro for s in samples])
+    assert np.abs(accel).max() == 2.0 and np.abs(gyro).max() == 1e-3
