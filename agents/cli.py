@@ -152,10 +152,10 @@ def _record(args: argparse.Namespace) -> int:
 
 
 def _estimate(args: argparse.Namespace) -> int:
-    from agents.offline import estimate_bag
-    from hardware.bag.reader import BagError
-    from tensegrity_gym.model.description import DescriptionError, load_robot
+    from agents.offline import BAG_FAILURES, BagsFailedError, estimate_bag
+    from tensegrity_gym.model.description import load_robot
 
+    failed = None
     try:
         description = load_robot(args.robot) if args.robot else None
         results = estimate_bag(
@@ -167,7 +167,9 @@ def _estimate(args: argparse.Namespace) -> int:
             strict=args.strict,
             progress=not args.no_progress,
         )
-    except (BagError, DescriptionError, ValueError) as err:
+    except BagsFailedError as err:  # each failure is logged; the other bags were estimated
+        results, failed = err.results, err
+    except BAG_FAILURES as err:
         log.error("%s", err)
         return 2
     for r in results:
@@ -179,6 +181,9 @@ def _estimate(args: argparse.Namespace) -> int:
             )
         sys.stdout.write(line + "\n")
     sys.stdout.write(f"written to {args.out}\n")
+    if failed is not None:
+        log.error("%s", failed)
+        return 2
     return 0
 
 

@@ -22,6 +22,7 @@ import tensegrity_gym  # noqa: F401  (registers the envs)
 from agents.plots import plot_com_paths, plot_errors
 from agents.runs import estimation_errors
 from estimation.metrics import body_poses, trajectory_errors
+from estimation.ukf.initialise import InitialisationError
 from hardware.bag.reader import find_bags
 from hardware.bag.replay import ReplayBackend
 from hardware.recording import hold_command
@@ -36,7 +37,15 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.estimate import Estimate
     from tensegrity_gym.model.samples import GroundTruth
 
-__all__ = ["POLICIES", "estimate_bag", "make_policy", "record", "write_tum"]
+__all__ = [
+    "BAG_FAILURES",
+    "POLICIES",
+    "BagsFailedError",
+    "estimate_bag",
+    "make_policy",
+    "record",
+    "write_tum",
+]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +53,25 @@ POLICIES = ("scripted", "random")
 """Built-in policies; a training run's folder (from ``train``) is the third kind."""
 
 Policy = Callable[[np.ndarray], np.ndarray]
+
+BAG_FAILURES: tuple[type[Exception], ...] = (ValueError, InitialisationError)
+"""What a bag that cannot be estimated raises: :class:`hardware.bag.BagError` and other
+ValueErrors (bad content, a robot that does not fit), or an estimator that cannot start
+from the bag's first samples. A user's data, not a bug: one line, no traceback."""
+
+
+class BagsFailedError(ValueError):
+    """Some bags of a folder could not be estimated; the others were, and their
+    results are in :attr:`results`."""
+
+    def __init__(
+        self, results: list[dict[str, Any]], failures: list[tuple[Path, str]], total: int
+    ) -> None:
+        self.results = results
+        self.failures = failures
+        """(bag, why) of each bag that failed."""
+        names = ", ".join(path.name for path, _ in failures)
+        super().__init__(f"{len(failures)} of {total} bags failed: {names}")
 
 
 def make_policy(name: str, env: gym.Env[Any, Any], seed: int) -> tuple[Policy, Callable[[], None]]:
@@ -173,16 +201,31 @@ def estimate_bag(
     the CoM), ``truth.tum`` and ``metrics.json`` (errors against the ground truth, where
     the bag has it), ``com_path.png``, ``error.png`` (with truth) and ``estimates.npz``.
     Returns the metrics of each bag.
+
+    Raises:
+        BAG_FAILURES: the one bag at ``bag`` cannot be estimated.
+        BagsFailedError: some bags of a folder cannot be; the others were estimated,
+            and each failure was logged in one line.
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"unknown estimator {estimator!r}; valid choices: {list(ESTIMATORS)}")
     bags = find_bags(bag)
-    results = []
+
+    def one(path: Path, folder: Path) -> dict[str, Any]:
+        return _estimate_one(path, estimator, folder, seed, description, strict, settle, progress)
+
+    if len(bags) == 1:
+        return [one(bags[0], out)]
+    results, failures = [], []
     for path in bags:
-        folder = out if len(bags) == 1 else out / path.name
-        results.append(
-            _estimate_one(path, estimator, folder, seed, description, strict, settle, progress)
-        )
+        try:
+            results.append(one(path, out / path.name))
+        except BAG_FAILURES as err:
+            why = str(err) if str(path) in str(err) else f"{path}: {type(err).__name__}: {err}"
+            log.error("%s", why)
+            failures.append((path, why))
+    if failures:
+        raise BagsFailedError(results, failures, len(bags))
     return results
 
 
@@ -230,6 +273,7 @@ def _estimate_one(
         "realtime_factor": round(duration / wall, 1) if wall > 0 else None,
         "recovered_bag": backend.reader.recovered,
         "skipped_messages": dict(backend.reader.skipped),
+        "lost_spans": [span.as_dict() for span in backend.reader.lost_spans],
         "reinitialisations": int(sum(e.reinitialised for e in estimates)),
         "finite": bool(finite.all()),
     }

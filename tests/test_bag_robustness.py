@@ -30,6 +30,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from hardware.bag import BagError, BagReader, ReplayBackend, read_run
 from hardware.bag import messages as m
 from hardware.bag.codec import RobotCodec
+from hardware.bag.reader import COMMAND_TOPIC
 from hardware.bag.writer import BagWriter
 from hardware.recording import BagSink, MemorySink, RecordingBackend
 from tensegrity_gym.model.description import load_robot
@@ -540,29 +541,37 @@ def _damage_chunk(data: bytes, case: str) -> bytes:
         ("zstd_frame_magic", True),
         ("message_length_huge", False),
         ("message_length_huge", True),
+        ("message_length_short", False),
         ("message_length_short", True),
     ],
 )
-def test_damaged_chunk_gives_bag_error(
+def test_damaged_chunk_is_skipped_and_strict_names_it(
     small_bags: dict[bool, Path], tmp_path: Path, case: str, metadata: bool
 ) -> None:
+    """The second (last) chunk is damaged: the first reads, the second is a lost span;
+    ``strict`` refuses the bag, naming the chunk's topics and time span."""
     bag = small_bags[case.startswith("zstd")]
-    damaged = _damage_chunk((bag / f"{bag.name}.mcap").read_bytes(), case)
+    data = (bag / f"{bag.name}.mcap").read_bytes()
+    damaged = _damage_chunk(data, case)
     copy = _bare_bag(
         tmp_path / "damaged", damaged, metadata=bag / "metadata.yaml" if metadata else None
     )
-    with pytest.raises(BagError, match="damaged"):
-        _read(copy)
-
-
-def test_short_message_record_without_metadata_gives_bag_error(
-    small_bags: dict[bool, Path], tmp_path: Path
-) -> None:
-    bag = small_bags[False]
-    damaged = _damage_chunk((bag / f"{bag.name}.mcap").read_bytes(), "message_length_short")
-    copy = _bare_bag(tmp_path / "damaged", damaged)
-    with pytest.raises(BagError, match=r"damaged.*Invalid message record length"):
-        _read(copy)
+    _, intact = _read(bag)
+    reader, periods = _read(copy)
+    [span] = reader.lost_spans
+    end_ns = _chunks(data)[1][2]
+    assert span.end_ns == end_ns and span.start_ns >= _chunks(data)[0][2]
+    assert COMMAND_TOPIC in span.topics and reader.skipped == {"damaged_chunk": span.messages}
+    kept = [p for p in intact if p.t_end < span.start]
+    assert kept and len(periods) < len(intact)
+    _same_periods(periods[: len(kept)], kept)
+    assert periods[-1].lost == [span]
+    reason = {"zstd_frame_magic": "zstd", "message_length_huge": "runs past"}
+    with pytest.raises(BagError, match=reason.get(case, "message record of 10 bytes")) as err:
+        _read(copy, strict=True)
+    text = str(err.value)
+    assert "damaged chunk" in text and COMMAND_TOPIC in text and "/red/imu/data_raw" in text
+    assert f"..{ns_to_seconds(end_ns):.9f} s" in text
 
 
 # ---------------------------------------------------------------------- not bags

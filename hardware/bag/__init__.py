@@ -1,6 +1,6 @@
 """Runs as ROS 2 bags (MCAP storage): writing, reading, and replay behind ``Backend``."""
 
-from hardware.bag.reader import BagError, BagPeriod, BagReader, find_bags, read_run
+from hardware.bag.reader import BagError, BagPeriod, BagReader, LostSpan, find_bags, read_run
 from hardware.bag.replay import ReplayBackend
 from hardware.bag.writer import BagWriter
 
@@ -9,6 +9,7 @@ __all__ = [
     "BagPeriod",
     "BagReader",
     "BagWriter",
+    "LostSpan",
     "ReplayBackend",
     "find_bags",
     "read_run",

@@ -29,20 +29,26 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import statistics
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from rosbags.rosbag2 import Reader, ReaderError
-from rosbags.rosbag2.storage_mcap import McapReader
+from rosbags.rosbag2 import ReaderError
 
 from hardware.bag import messages as m
 from hardware.bag.assembler import SampleAssembler
 from hardware.bag.codec import MessageError, RobotCodec, run_info_from_text
+from hardware.bag.salvage import (
+    MAGIC,
+    LostSpan,
+    SalvagingMcap,
+    mcap_walk,
+    open_indexed,
+    open_recovered,
+)
 from hardware.recording import RecordedRun, RecordedStep, hold_command
 from tensegrity_gym.model.description import DescriptionError, RobotDescription, loads_robot
 from tensegrity_gym.model.samples import (
@@ -59,13 +65,9 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
-__all__ = ["BagError", "BagPeriod", "BagReader", "find_bags", "read_run"]
+__all__ = ["BagError", "BagPeriod", "BagReader", "LostSpan", "find_bags", "read_run"]
 
 log = logging.getLogger(__name__)
-
-_MAGIC = b"\x89MCAP0\r\n"
-_RECORD_HEAD = 9  # opcode (1) + length (8)
-_DATA_END, _FOOTER = 0x0F, 0x02
 
 COMMAND_TOPIC = "/commands/rest_length_targets"
 _HEADER_TOPICS = (
@@ -98,88 +100,20 @@ def find_bags(path: str | Path) -> list[Path]:
     return bags
 
 
-# ---------------------------------------------------------------------- recovery
+# ---------------------------------------------------------------------- opening
 
 
-def _mcap_data_end(path: Path) -> int:
-    """Byte offset just past the last complete top-level MCAP record (0 if none)."""
-    size = path.stat().st_size
-    with path.open("rb") as f:
-        if f.read(8) != _MAGIC:
-            return 0
-        offset = 8
-        while offset + _RECORD_HEAD <= size:
-            f.seek(offset)
-            head = f.read(_RECORD_HEAD)
-            op, length = head[0], int.from_bytes(head[1:], "little")
-            if op in (_DATA_END, _FOOTER) or offset + _RECORD_HEAD + length > size:
-                break
-            offset += _RECORD_HEAD + length
-        return offset
-
-
-class _PrefixWithFooter:
-    """A read-only file: the first ``end`` bytes of ``path`` and an MCAP footer with no
-    summary, which makes rosbags scan the records instead of reading an index."""
-
-    def __init__(self, path: Path, end: int) -> None:
-        self._file: BinaryIO = path.open("rb")
-        self._end = end
-        self._tail = bytes([_FOOTER]) + (20).to_bytes(8, "little") + bytes(20) + _MAGIC
-        self._pos = 0
-
-    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
-        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._pos, os.SEEK_END: self._end + len(self._tail)}
-        self._pos = max(0, base[whence] + offset)
-        return self._pos
-
-    def tell(self) -> int:
-        return self._pos
-
-    def read(self, n: int = -1) -> bytes:
-        total = self._end + len(self._tail)
-        stop = total if n < 0 else min(total, self._pos + n)
-        out = b""
-        if self._pos < self._end:
-            self._file.seek(self._pos)
-            out = self._file.read(min(stop, self._end) - self._pos)
-        if stop > self._end:
-            out += self._tail[max(0, self._pos - self._end) : stop - self._end]
-        self._pos = stop
-        return out
-
-    def close(self) -> None:
-        self._file.close()
-
-
-class _RecoveredMcap(McapReader):
-    """rosbags' MCAP reader over the intact part of an MCAP file cut off mid-write."""
-
-    def __init__(self, path: Path, end: int) -> None:
-        super().__init__(path)
-        self._file_path = path
-        self._valid_end = end
-
-    def open(self) -> None:
-        self.bio = _PrefixWithFooter(self._file_path, self._valid_end)  # type: ignore[assignment]
-        try:
-            self._open()
-        except BaseException:
-            self.close()
-            raise
-
-
-def _open_storage(path: Path) -> tuple[Any, bool]:
-    """(an open rosbags reader, whether the bag was recovered from a cut-off write).
+def _open_storage(path: Path) -> tuple[Any, list[SalvagingMcap], bool]:
+    """(an open rosbags reader, its MCAP storages, whether the bag was recovered from a
+    cut-off write).
 
     Any failure inside rosbags (it raises many kinds on damaged bytes) becomes BagError.
     """
     mcaps = [path] if path.is_file() else sorted(p for p in path.glob("*.mcap") if p.is_file())
     if (path.is_dir() and (path / "metadata.yaml").exists()) or path.is_file():
         try:
-            reader: Any = Reader(path)
-            reader.open()
-            return reader, False
+            reader, storages = open_indexed(path)
+            return reader, storages, False
         except Exception as err:
             if len(mcaps) != 1 or not mcaps[0].name.endswith(".mcap"):
                 raise BagError(f"{path}: cannot open the bag: {err}") from None
@@ -189,17 +123,16 @@ def _open_storage(path: Path) -> tuple[Any, bool]:
             f"{path}: no metadata.yaml and {len(mcaps)} .mcap files; cannot tell which to read"
         )
     try:
-        end = _mcap_data_end(mcaps[0])
+        walk = mcap_walk(mcaps[0])
     except OSError as err:
         raise BagError(f"{mcaps[0]}: cannot read: {err}") from None
-    if end <= 8:
+    if walk.end <= len(MAGIC):
         raise BagError(f"{mcaps[0]}: not an MCAP file, or cut off before its first record")
-    storage = _RecoveredMcap(mcaps[0], end)
     try:
-        storage.open()
+        storage = open_recovered(mcaps[0], walk)
     except Exception as err:
         raise BagError(f"{mcaps[0]}: cannot recover the bag: {err}") from None
-    return storage, True
+    return storage, [storage], True
 
 
 # ---------------------------------------------------------------------- periods
@@ -218,6 +151,9 @@ class BagPeriod:
     """The last estimate recorded in the period."""
     t_end: float
     """Log time (s) of the period's end: the next command, or the last message."""
+    lost: list[LostSpan] = field(default_factory=list)
+    """Damaged chunks whose time overlaps the period: their messages are missing from
+    ``samples`` (nothing stands in for them)."""
 
 
 class BagReader:
@@ -244,8 +180,15 @@ class BagReader:
         self.skipped: Counter[str] = Counter()
         self.unknown_topics: Counter[str] = Counter()
         self._warned: set[tuple[str, str]] = set()
-        self._storage, self.recovered = _open_storage(self.path)
+        self._lost: dict[tuple[str, int], LostSpan] = {}
+        self._counted: set[tuple[str, int]] = set()  # lost spans in this pass's skips
+        self._storage, storages, self.recovered = _open_storage(self.path)
         try:
+            self._known_lost = [span for s in storages for span in s.known_lost]
+            for storage in storages:
+                storage.on_damage = self._damaged
+            for span in self._known_lost:
+                self._damaged(span)
             self._connections: list[Connection] = list(self._storage.connections)
             self._check_types({t: kind for t, (kind, _) in m.FIXED_TOPICS.items()})
             header = self._read_header()
@@ -282,6 +225,8 @@ class BagReader:
         try:
             for conn, ns, raw in self._storage.messages(conns):
                 yield conn.topic, ns, raw
+        except BagError:
+            raise
         except Exception as err:
             raise BagError(f"{self.path}: the bag is damaged: {err!r}") from None
 
@@ -305,8 +250,8 @@ class BagReader:
         raw = header.get("/robot_description")
         if raw is None:
             raise BagError(
-                f"{self.path}: no /robot_description message; pass the robot "
-                "(description=..., or --robot on the command line)"
+                f"{self.path}: no /robot_description message{self._lost_note('/robot_description')}"
+                "; pass the robot (description=..., or --robot on the command line)"
             )
         store = m.typestore()
         try:
@@ -349,6 +294,7 @@ class BagReader:
             raise BagError(
                 f"{self.path}: no /tensegrity/calibration message (UWB anchors and offsets, "
                 "camera pose); an estimator cannot run without it"
+                f"{self._lost_note('/tensegrity/calibration')}"
             )
         try:
             return self.codec.decode_calibration(raw, header.get("/camera/camera_info"))
@@ -403,6 +349,37 @@ class BagReader:
         counts = [c.msgcount for c in self._connections if c.topic == COMMAND_TOPIC]
         return sum(counts) if counts and all(counts) else None
 
+    @property
+    def lost_spans(self) -> list[LostSpan]:
+        """The damaged chunks met so far, in time order: their time spans, and their
+        topics and message counts where the file's index says. An indexed bag finds a
+        damaged chunk as a read reaches it; a recovered one on opening."""
+        return sorted(self._lost.values(), key=lambda s: (s.start_ns, s.offset))
+
+    def _damaged(self, span: LostSpan) -> None:
+        """A damaged chunk: raise (strict), or keep its span, warn once, and count its
+        messages as ``skipped["damaged_chunk"]`` once per pass."""
+        text = f"{self.path}: {span.describe()}"
+        if self.strict:
+            raise BagError(text)
+        key = (span.file, span.offset)
+        if key not in self._lost:
+            self._lost[key] = span
+            log.warning("%s; reading on past it", text)
+        if key not in self._counted:
+            self._counted.add(key)
+            self.skipped["damaged_chunk"] += span.messages or 0
+
+    def _lost_note(self, topic: str) -> str:
+        """Where a missing ``topic`` went: a damaged chunk that held it, or may have."""
+        for span in self.lost_spans:
+            if topic in span.counts:
+                return f" (it was in the {span.describe()})"
+        for span in self.lost_spans:
+            if not span.counts or any(t.startswith("channel ") for t in span.counts):
+                return f" (it may have been in the {span.describe()})"
+        return ""
+
     # ------------------------------------------------------------------ skips
 
     def _skip(self, kind: str, topic: str, ns: int | None, why: str = "") -> None:
@@ -425,6 +402,9 @@ class BagReader:
         known = set(topics.types) - set(_HEADER_TOPICS)
         self.skipped.clear()  # counts are of this pass
         self.unknown_topics.clear()
+        self._counted.clear()
+        for span in self._known_lost:
+            self._damaged(span)
         for conn in self._connections:
             if conn.topic not in topics.types:
                 self.unknown_topics[conn.topic] += conn.msgcount
@@ -435,11 +415,12 @@ class BagReader:
         command: NDArray[np.float64] | None = None  # of the period being read
         boundary: int | None = None  # log time of the next period's command
         pending: NDArray[np.float64] | None = None
-        last_ns = 0
+        last_ns, start_ns = 0, -1  # start_ns: log time of this period's command
         for topic, ns, raw in self._messages(known):
             if boundary is not None and ns > boundary:
                 assert pending is not None
-                yield self._finish(assembler, boundary, command)
+                yield self._finish(assembler, (start_ns, boundary), command)
+                start_ns = boundary
                 command, boundary, pending = pending, None, None
             last_ns = ns
             if topic == COMMAND_TOPIC:
@@ -463,11 +444,19 @@ class BagReader:
                 boundary or last_ns,
                 "nothing was recorded after it",
             )
-        yield self._finish(assembler, last_ns, command)
+        yield self._finish(assembler, (start_ns, last_ns), command, last=True)
 
-    def _finish(self, assembler: SampleAssembler, end_ns: int, command: Any) -> BagPeriod:
+    def _finish(
+        self, assembler: SampleAssembler, span: tuple[int, int], command: Any, last: bool = False
+    ) -> BagPeriod:
+        """The period from log time ``span[0]`` to ``span[1]`` (ns); the last one also
+        takes the damaged chunks after its last message."""
         out = assembler.take()
-        return BagPeriod(out.samples, command, out.truth, out.estimate, ns_to_seconds(end_ns))
+        start, end = span
+        lost = [s for s in self.lost_spans if s.end_ns > start and (last or s.start_ns <= end)]
+        return BagPeriod(
+            out.samples, command, out.truth, out.estimate, ns_to_seconds(span[1]), lost
+        )
 
 
 def read_run(

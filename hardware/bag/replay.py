@@ -1,10 +1,11 @@
 """A recorded bag behind the :class:`Backend` protocol: a run plays back as if it were live.
 
 The env and the estimator see the same samples, at the same times, as when the run was
-recorded. The commands are the bag's: the targets the env passes to :meth:`step` are
-ignored (a warning says so once), and each :class:`StepResult` carries the recorded
-command, which the env hands to the estimator. The last period has ``ended`` set, which
-ends the episode (truncated).
+recorded (less those of a damaged chunk, which are missing from their period; the
+period's ``info["bag_lost"]`` says so). The commands are the bag's: the targets the env
+passes to :meth:`step` are ignored (a warning says so once), and each
+:class:`StepResult` carries the recorded command, which the env hands to the estimator.
+The last period has ``ended`` set, which ends the episode (truncated).
 """
 
 from __future__ import annotations
@@ -96,7 +97,14 @@ class ReplayBackend:
         return StepResult(start.samples, info=self._info(start), ended=self._next is None)
 
     def _info(self, period: BagPeriod) -> dict[str, Any]:
-        return {"bag_time": period.t_end, "bag_skipped": dict(self.reader.skipped)}
+        """``bag_time`` (s): the period's end; ``bag_skipped``: the reader's skip counts
+        so far; ``bag_lost``: damaged chunks within the period (their messages are
+        simply missing), as :meth:`LostSpan.as_dict`."""
+        return {
+            "bag_time": period.t_end,
+            "bag_skipped": dict(self.reader.skipped),
+            "bag_lost": [span.as_dict() for span in period.lost],
+        }
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
         if self._periods is None:
