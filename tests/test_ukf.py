@@ -18,6 +18,7 @@ import subprocess
 import sys
 from collections import deque
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -38,17 +39,19 @@ from estimation.ukf import (
     UkfEstimator,
     UnscentedKalmanFilter,
 )
+from estimation.ukf.initialise import InitialisationError
 from estimation.ukf.measurements import MeasurementModel, RowKind, ahrs_axis
 from estimation.ukf.sigma_points import CholeskyError, robust_cholesky, sigma_points
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.kinematics import member_lengths, rod_axes
-from tensegrity_gym.model.protocols import Estimator
+from tensegrity_gym.model.protocols import Estimator, InitialisationCheck
 from tensegrity_gym.model.samples import (
     AhrsSample,
     CableLengthSample,
     ContactSample,
     EncoderSample,
     GroundTruth,
+    ImuSample,
     UwbRangeSample,
 )
 from tensegrity_gym.sim.backend import SimBackend
@@ -58,6 +61,8 @@ from tensegrity_gym.tasks.gaits import FaceGait
 from .reference_spring_mass import Events, closest_parameters, propagate_reference
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from numpy.typing import NDArray
 
     from estimation.ukf.measurements import MeasurementBatch
@@ -807,6 +812,8 @@ def _corrupt_round(sample: Sample, n_nodes: int, case: str) -> Sample:
         ranges[anchor & (pairs % 2 == 0).all(axis=1)] += 0.5
     elif case == "every-anchor-0.3-m-long":
         ranges[anchor] += 0.3
+    elif case == "anchors-0.5-m-long":
+        ranges[anchor] += 0.5
     else:
         assert case == "every-anchor-20-percent-long"
         ranges[anchor] *= 1.2
@@ -1172,6 +1179,290 @@ def test_garbage_samples_are_dropped(rolling: Recording) -> None:
         "uwb_range_not_finite": 6,
     }
     assert ref.rejected == {} and e.failed_streams == ()
+
+
+# ----------------------------------------------------------------------------- implausible streams
+
+
+def _edit_ranges(samples: Sequence[Sample], edit: Any) -> list[Sample]:
+    """``samples`` with every UWB round's ranges (m), (k,), replaced by ``edit(ranges)``."""
+    return [
+        UwbRangeSample(s.t, s.times, s.pairs, edit(np.array(s.ranges)))
+        if isinstance(s, UwbRangeSample)
+        else s
+        for s in samples
+    ]
+
+
+BAD_UWB = {
+    "millimetres": lambda r: 1000.0 * r,
+    "100-m": lambda r: np.full_like(r, 100.0),
+    "negative": lambda r: -r,
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_UWB))
+def test_a_wrongly_scaled_uwb_stream_is_rejected_failed_and_not_fitted_to(
+    rolling: Recording, case: str
+) -> None:
+    """Every range wrong from 1.2 s on. Before the plausibility screen the filter fused
+    them (its gate is off after each re-initialisation they caused: 17 of them) and the
+    CoM went 2.2 km (millimetres), 85 m (100 m) and 0.36 m (negative) off. Now they are
+    counted, "uwb" fails after a second of them, the filter carries on with the AHRS,
+    cables and contacts (CoM measured at most 1.6 cm off, no re-initialisation) and a
+    re-initialisation then fits to none of them."""
+    rec = rolling
+    bad_from = SETTLE + 2
+    est, _ = _start(rec)
+    failed_at = None
+    for k, step in enumerate(rec.steps[:-1]):
+        samples = step.samples
+        if k >= bad_from:
+            samples = _edit_ranges(samples, BAD_UWB[case])
+        e = est.update(samples, step.command)
+        assert e.is_finite() and e.healthy
+        assert _com_error(e, step.truth) < 0.3, (k, _com_error(e, step.truth))
+        if failed_at is None and "uwb" in e.failed_streams:
+            failed_at = k
+    kind = "uwb_range_negative" if case == "negative" else "uwb_range_too_long"
+    assert e.rejected is not None and e.rejected[kind] > 100
+    assert set(e.rejected) == {kind}
+    assert est.diagnostics.implausible_by_kind == e.rejected
+    assert failed_at is not None and 9 <= failed_at - bad_from <= 11  # 1 s of rounds
+    assert e.failed_streams == ("uwb",)
+    assert est.diagnostics.reinitialisations == 0
+    # A re-initialisation now has no plausible range to fit to: it keeps the estimate.
+    _nan_covariance(est)
+    step = rec.steps[-1]
+    again = est.update(_edit_ranges(step.samples, BAD_UWB[case]), step.command)
+    assert again.reinitialised and again.is_finite()
+    assert _com_error(again, step.truth) < 0.3
+
+
+def test_a_uwb_stream_that_recovers_is_restored(rolling: Recording) -> None:
+    """100 m ranges for 1.2 s, then good ones: failed, then restored a second later."""
+    rec = rolling
+    est, _ = _start(rec)
+    failed = []
+    for k, step in enumerate(rec.steps):
+        samples = step.samples
+        if 4 <= k < 16:
+            samples = _edit_ranges(samples, BAD_UWB["100-m"])
+        e = est.update(samples, step.command)
+        failed.append("uwb" in e.failed_streams)
+        assert e.is_finite()
+    first, last = failed.index(True), len(failed) - 1 - failed[::-1].index(True)
+    assert 13 <= first <= 15 and 25 <= last <= 26, failed
+    assert not failed[-1] and e.healthy
+    assert _com_error(e, rec.steps[-1].truth) < 0.05
+
+
+def test_reset_fits_only_plausible_ranges(rolling: Recording) -> None:
+    """The first samples with a tenth of a second of rounds in millimetres after them:
+    the fit uses the good round alone (before the screen it fitted all of them)."""
+    rec = rolling
+    later = [s for s in rec.steps[0].samples if isinstance(s, UwbRangeSample)]
+    start = [*rec.start, *_edit_ranges(later, BAD_UWB["millimetres"])]
+    est = UkfEstimator()
+    assert est.initialisation_missing(rec.description, rec.calibration, start) is None
+    first = est.reset(
+        rec.description, rec.calibration, start, rec.command, np.random.default_rng(0)
+    )
+    assert first.rejected is not None and first.rejected["uwb_range_too_long"] > 20
+    assert _node_error(first, rec.truth) < 0.05
+
+
+def _gated_round_after_an_outage(rec: Recording, bad_at: int) -> list[float]:
+    """CoM errors (m) from ``bad_at`` on, with no UWB for the 0.6 s before it and every
+    anchor range of period ``bad_at`` 0.5 m long."""
+    est, _ = _start(rec)
+    errors = []
+    for k, step in enumerate(rec.steps[: bad_at + 4]):
+        samples = step.samples
+        if bad_at - 6 <= k < bad_at:
+            samples = [s for s in samples if not isinstance(s, UwbRangeSample)]
+        elif k == bad_at:
+            samples = [
+                _corrupt_round(s, rec.description.n_nodes, "anchors-0.5-m-long") for s in samples
+            ]
+        e = est.update(samples, step.command)
+        assert e.is_finite()
+        if k >= bad_at:
+            errors.append(_com_error(e, step.truth))
+    assert est.diagnostics.reinitialisations >= 1
+    return errors
+
+
+def test_reinitialisation_never_fits_to_the_ranges_the_gate_rejected(rolling: Recording) -> None:
+    """After an outage the buffer holds only the round whose anchor ranges were gated
+    out; the divergence they declare used to re-initialise onto them (when no older
+    round remained) and the CoM went 26 cm off. Now it keeps the estimate (measured
+    0.5 cm off)."""
+    errors = _gated_round_after_an_outage(rolling, SETTLE + 10)
+    assert max(errors) < 0.05, np.round(errors, 3)
+
+
+def test_imu_and_ahrs_beyond_what_they_can_report_are_rejected(rolling: Recording) -> None:
+    """An accelerometer beyond its 16 g, a gyro beyond its 2000 deg/s and an AHRS
+    quaternion of norm 1.19: dropped and counted, the estimates those of a filter that
+    never received them; a rod's IMU beyond full scale for over a second fails it."""
+    rec = rolling
+    d = rec.description
+    imu = d.sensors.imu
+    est, _ = _start(rec)
+    clean, _ = _start(rec)
+    for step in rec.steps[:14]:
+        t = max(s.t for s in step.samples)
+        bad: list[Sample] = [
+            ImuSample(
+                t, 1, np.array([0.0, 0.0, 1.1 * imu.accel_full_scale]), np.zeros(3), np.zeros(3)
+            ),
+            ImuSample(
+                t, 2, np.zeros(3), np.array([1.1 * imu.gyro_full_scale, 0.0, 0.0]), np.zeros(3)
+            ),
+            AhrsSample(t, 1, np.array([0.3, 0.9, 0.4, 0.6])),
+        ]
+        samples = [
+            ImuSample(s.t, s.rod, 100.0 * s.accel, s.gyro, s.mag)
+            if isinstance(s, ImuSample) and s.rod == 0
+            else s
+            for s in step.samples
+        ]
+        e = est.update([*samples, *bad], step.command)
+        ref = clean.update(step.samples, step.command)
+        np.testing.assert_allclose(e.node_positions, ref.node_positions, rtol=0, atol=1e-9)
+        assert e.healthy
+    assert e.rejected is not None
+    n_rod0 = sum(
+        isinstance(s, ImuSample) and s.rod == 0 for st in rec.steps[:14] for s in st.samples
+    )
+    assert e.rejected == {
+        "accel_over_full_scale": 14 + n_rod0,
+        "gyro_over_full_scale": 14,
+        "ahrs_not_unit": 14,
+    }
+    assert e.failed_streams == ("imu/red",)
+
+
+def test_cable_readings_the_rods_do_not_permit_are_rejected(rolling: Recording) -> None:
+    """A cable reading 5 m (the rods laid end to end are 0.975 m) and one reading -0.5 m
+    from the first update on, while the gate is still off: dropped and counted, the
+    estimates those of a filter that read NaN (no reading) there. Then every cable in
+    millimetres for 1.2 s: the stream fails, and is restored a second after it heals."""
+    rec = rolling
+    est, _ = _start(rec)
+    clean, _ = _start(rec)
+
+    def edit(samples: list[Sample], lengths: Any) -> list[Sample]:
+        return [
+            CableLengthSample(s.t, lengths(np.array(s.lengths)))
+            if isinstance(s, CableLengthSample)
+            else s
+            for s in samples
+        ]
+
+    def wrong(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        x[0], x[1] = 5.0, -0.5
+        return x
+
+    def absent(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        x[:2] = np.nan
+        return x
+
+    failed = []
+    for k, step in enumerate(rec.steps):
+        if k < 6:
+            e = est.update(edit(step.samples, wrong), step.command)
+            ref = clean.update(edit(step.samples, absent), step.command)
+            np.testing.assert_allclose(e.node_positions, ref.node_positions, rtol=0, atol=1e-9)
+        else:
+            scale = partial(np.multiply, 1000.0 if k < 18 else 1.0)
+            e = est.update(edit(step.samples, scale), step.command)
+        failed.append("cable_lengths" in e.failed_streams)
+        assert e.is_finite() and _com_error(e, step.truth) < 0.05
+    assert e.rejected is not None
+    assert e.rejected["cable_negative"] == 6 and e.rejected["cable_too_long"] >= 6 + 12 * 9
+    first, last = failed.index(True), len(failed) - 1 - failed[::-1].index(True)
+    assert 15 <= first <= 17 and 27 <= last <= 28 and not failed[-1], failed
+
+
+def test_no_correction_for_longer_than_max_prediction_time_is_unhealthy(
+    rolling: Recording,
+) -> None:
+    """Updates with no samples at all, then with raw IMU readings alone: unhealthy once
+    more than ``max_prediction_time`` has passed without a sensor row fused (it used to
+    stay healthy), healthy again at the first update that fuses one."""
+    assert UkfConfig().max_prediction_time == 0.5
+    rec = rolling
+    est, _ = _start(rec, UkfConfig(max_prediction_time=0.25))
+    k = 12
+    for step in rec.steps[:k]:
+        assert est.update(step.samples, step.command).healthy
+    # Without samples, each update counts as long as the last one with samples did.
+    flags = [est.update([], rec.steps[k].command).healthy for _ in range(4)]
+    assert flags == [True, True, False, False]
+    step = rec.steps[k]
+    back = est.update(step.samples, step.command)
+    assert back.healthy and back.is_finite()
+    flags = []
+    for step in rec.steps[k + 1 : k + 5]:
+        imu_only = [s for s in step.samples if isinstance(s, ImuSample)]
+        flags.append(est.update(imu_only, step.command).healthy)
+    assert flags == [True, True, False, False]
+    step = rec.steps[k + 5]
+    assert est.update(step.samples, step.command).healthy
+    assert est.diagnostics.reinitialisations == 0
+
+
+def test_initialisation_missing_counts_plausible_anchor_ranges(rolling: Recording) -> None:
+    """It agrees with what reset's fit needs (MIN_ANCHOR_RANGES anchor ranges within
+    range_window of the newest sample, of the anchors in use), counting only plausible
+    ranges, and says what is missing in one line."""
+    rec = rolling
+    d, cal = rec.description, rec.calibration
+    n = d.n_nodes
+    others = [s for s in rec.start if not isinstance(s, UwbRangeSample)]
+    last = [s for s in rec.start if isinstance(s, UwbRangeSample)][-1]
+    to_anchor = np.flatnonzero((np.asarray(last.pairs) >= n).any(axis=1))
+
+    def with_anchor_ranges(count: int, edit: Any = None) -> list[Sample]:
+        keep = np.zeros(len(last.ranges), dtype=bool)
+        keep[to_anchor[:count]] = True
+        ranges = np.array(last.ranges)[keep]
+        pairs = np.asarray(last.pairs)[keep]
+        if edit is not None:
+            ranges = edit(ranges)
+        return [*others, UwbRangeSample(last.t, np.array(last.times)[keep], pairs, ranges)]
+
+    est = UkfEstimator()
+    assert est.initialisation_missing(d, cal, rec.start) is None
+    assert est.initialisation_missing(d, cal, others) == "0 UWB ranges to anchors, 4 needed"
+    three = with_anchor_ranges(3)
+    assert est.initialisation_missing(d, cal, three) == "3 UWB ranges to anchors, 4 needed"
+    with pytest.raises(InitialisationError, match="3 UWB ranges to anchors"):
+        UkfEstimator().reset(d, cal, three, rec.command, np.random.default_rng(0))
+    four = with_anchor_ranges(4)
+    assert est.initialisation_missing(d, cal, four) is None
+    UkfEstimator().reset(d, cal, four, rec.command, np.random.default_rng(0))
+    scaled = with_anchor_ranges(6, BAD_UWB["millimetres"])
+    assert est.initialisation_missing(d, cal, scaled) == (
+        "0 UWB ranges to anchors, 4 needed (6 implausible ones dropped)"
+    )
+    # Ranges older than range_window before the newest sample do not count.
+    late = [*four, dataclasses.replace(others[-1], t=last.t + 0.6)]
+    assert est.initialisation_missing(d, cal, late) == "0 UWB ranges to anchors, 4 needed"
+    # Only the anchors in use count; a given initial pose needs none.
+    used = sorted({int(p.max()) - n for p in np.asarray(last.pairs)[to_anchor[:4]]})
+    others_only = UkfEstimator(UkfConfig(anchors=tuple(a for a in range(8) if a not in used)))
+    assert others_only.initialisation_missing(d, cal, four) == "0 UWB ranges to anchors, 4 needed"
+    pose = tuple(map(tuple, rec.truth.node_positions.tolist()))
+    assert (
+        UkfEstimator(UkfConfig(initial_positions=pose)).initialisation_missing(d, cal, []) is None
+    )
+
+
+def test_the_ukf_is_an_initialisation_check() -> None:
+    assert isinstance(UkfEstimator(), InitialisationCheck)
 
 
 # ----------------------------------------------------------------------------- the envs

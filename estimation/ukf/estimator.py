@@ -55,6 +55,9 @@ log = logging.getLogger(__name__)
 _JUMPED = "most anchor ranges gated out at once"
 """The divergence in which the estimate has jumped away from where the anchors put it."""
 
+_TIME_TOLERANCE = 1e-6
+"""s: sums of sample periods differ from their nominal values by rounding."""
+
 
 @dataclass(frozen=True)
 class UkfConfig:
@@ -737,7 +740,8 @@ class UkfEstimator:
             com=center_of_mass(nodes, d.node_masses),
             rest_lengths=self._rest.copy(),
             covariance=self.filter.P.copy(),
-            healthy=not reinitialised and self._uncorrected <= self.config.max_prediction_time,
+            healthy=not reinitialised
+            and self._uncorrected <= self.config.max_prediction_time + _TIME_TOLERANCE,
             reinitialised=reinitialised,
             failed_streams=self._screen.failed,
             rejected=dict(self.diagnostics.implausible_by_kind),
