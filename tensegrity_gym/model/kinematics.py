@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tensegrity_gym.model.lie import quat_rotate as quaternion_rotate
+
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
@@ -54,25 +56,6 @@ def center_of_mass(
     """Mass-weighted mean of the nodes (m): (..., n, 3), (n,) -> (..., 3)."""
     w = node_masses / node_masses.sum()
     return np.asarray(np.einsum("...ni,n->...i", node_positions, w))
-
-
-def quaternion_rotate(q: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotate vectors v (..., 3) by unit quaternions q (..., 4) in (x, y, z, w) order."""
-    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    vx, vy, vz = v[..., 0], v[..., 1], v[..., 2]
-    # v' = v + w t + xyz x t with t = 2 xyz x v; cross products written out, since
-    # np.cross costs more than the arithmetic on the small arrays of the sensor models.
-    tx = 2.0 * (y * vz - z * vy)
-    ty = 2.0 * (z * vx - x * vz)
-    tz = 2.0 * (x * vy - y * vx)
-    return np.stack(
-        [
-            vx + w * tx + y * tz - z * ty,
-            vy + w * ty + z * tx - x * tz,
-            vz + w * tz + x * ty - y * tx,
-        ],
-        axis=-1,
-    )
 
 
 def rod_quaternion_from_axis(axis: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from tensegrity_gym.model.kinematics import center_of_mass
+from tensegrity_gym.model.lie import quat_multiply
 from tensegrity_gym.model.protocols import SensorCalibration, StepResult
 from tensegrity_gym.model.samples import GroundTruth
 from tensegrity_gym.sim.sensors import (
@@ -160,21 +161,6 @@ def _yaw_quaternion(yaw: float) -> NDArray[np.float64]:
     return np.array([0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
 
 
-def _quat_multiply(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Hamilton product a * b of (..., 4) quaternions in (x, y, z, w) order."""
-    ax, ay, az, aw = np.moveaxis(a, -1, 0)
-    bx, by, bz, bw = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-            aw * bw - ax * bx - ay * by - az * bz,
-        ],
-        axis=-1,
-    )
-
-
 class SimBackend:
     """A simulated tensegrity robot producing raw sensor samples.
 
@@ -301,7 +287,7 @@ class SimBackend:
         qz = _yaw_quaternion(yaw)
         c, s = np.cos(yaw), np.sin(yaw)
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        world.set_rod_states(positions @ rot.T + shift, _quat_multiply(qz, quats))
+        world.set_rod_states(positions @ rot.T + shift, quat_multiply(qz, quats))
         self._diverged = False
 
         self.uwb.reset(rng)

@@ -12,7 +12,8 @@ from typing import TYPE_CHECKING
 import imufusion
 import numpy as np
 
-from tensegrity_gym.model.kinematics import member_lengths, quaternion_rotate
+from tensegrity_gym.model.kinematics import member_lengths
+from tensegrity_gym.model.lie import quat_conjugate, quat_rotate
 from tensegrity_gym.model.samples import (
     AhrsSample,
     CableLengthSample,
@@ -52,10 +53,6 @@ __all__ = [
 ]
 
 SPEED_OF_LIGHT = 299_792_458.0
-
-
-def _conjugate(q: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.asarray(q * np.array([-1.0, -1.0, -1.0, 1.0]), dtype=np.float64)
 
 
 class SensorSchedule:
@@ -140,10 +137,10 @@ class ImuModel:
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Body-frame accelerometer, gyro, magnetometer readings, each (k, r, 3)."""
         c = self.config
-        inv = _conjugate(quats)
-        f = quaternion_rotate(inv, accel_world - self.gravity)
-        w = quaternion_rotate(inv, omega_world)
-        m = quaternion_rotate(inv, np.broadcast_to(self.field, omega_world.shape))
+        inv = quat_conjugate(quats)
+        f = quat_rotate(inv, accel_world - self.gravity)
+        w = quat_rotate(inv, omega_world)
+        m = quat_rotate(inv, np.broadcast_to(self.field, omega_world.shape))
         # A MEMS IMU saturates at its full scale (an impact reads as the full scale).
         a_max, w_max = c.accel_full_scale, c.gyro_full_scale
         accel = np.clip(f + self.accel_bias + c.accel_noise * noise[..., 0:3], -a_max, a_max)

@@ -20,11 +20,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pybullet
 
-from tensegrity_gym.model.kinematics import (
-    member_lengths,
-    quaternion_rotate,
-    rod_quaternion_from_axis,
-)
+from tensegrity_gym.model.kinematics import member_lengths, rod_quaternion_from_axis
+from tensegrity_gym.model.lie import quat_rotate
 from tensegrity_gym.model.samples import ns_to_seconds
 from tensegrity_gym.sim.cables import cable_wrenches, slew_motors
 
@@ -237,7 +234,7 @@ class PhysicsWorld:
         p = np.asarray(pos)
         w = np.asarray(ang)
         v = np.asarray(lin)
-        arm = quaternion_rotate(np.asarray(orn), self._z_half)  # centre to second node
+        arm = quat_rotate(np.asarray(orn), self._z_half)  # centre to second node
         spin = np.stack(
             [
                 w[:, 1] * arm[:, 2] - w[:, 2] * arm[:, 1],
