@@ -16,13 +16,19 @@ topic; ``strict=True`` raises instead):
   (a wrong count, an unknown name, NaN or inf);
 - ``unpaired``: a depth image without its colour image (or the reverse), ground truth
   poses without the state;
-- ``trailing_command``: a last command with nothing recorded after it.
+- ``trailing_command``: a last command with nothing recorded after it;
+- ``damaged_chunk``: the messages of an MCAP chunk that does not decompress or parse
+  (as many as the file's message index says it held). The rest of the bag is read: the
+  chunks before it, and those after it (through the chunk index, or by walking the
+  records of a file without one). Each such chunk is a :class:`LostSpan` in
+  :attr:`BagReader.lost_spans` and in the ``lost`` of the periods it overlaps, naming
+  its topics and its start and end times; ``strict`` raises, naming them.
 
 Errors (:class:`BagError`): no bag at the path, a bag too damaged to open, a known
 topic with an unexpected type, a bag without a robot description (unless one is
 given), and, with ``strict``, any skip. A bag whose recording was cut off (no
-``metadata.yaml``, no MCAP summary) opens with everything up to its last complete
-chunk, and :attr:`BagReader.recovered` says so.
+``metadata.yaml``, no MCAP summary) opens with every intact chunk up to its last
+complete one, and :attr:`BagReader.recovered` says so.
 """
 
 from __future__ import annotations

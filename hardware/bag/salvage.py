@@ -134,8 +134,6 @@ def chunk_payload(body: bytes) -> tuple[int, int, bytes]:
     n = int.from_bytes(body[pos : pos + 8], "little")
     if pos + 8 + n > len(body):
         raise DamagedChunkError(f"compressed size {n} runs past the chunk record")
-    if size > 64 * max(n, 1) + 2**20:
-        raise DamagedChunkError(f"an uncompressed size of {size} bytes from {n} is not credible")
     try:
         raw = decompress(body[pos + 8 : pos + 8 + n], compression, size, crc)
     except Exception as err:  # the decompressors raise many kinds on damaged bytes
