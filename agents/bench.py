@@ -1,4 +1,4 @@
-"""Benchmarks: env throughput against the bare physics ceiling, and memory growth.
+"""``tensegrity-gym bench``: every benchmark in one run, as one JSON document.
 
 Every figure is measured in one run of one process, so ratios compare like with like
 on a shared, noisy machine.
@@ -8,98 +8,11 @@ from __future__ import annotations
 
 import os
 import platform
-import time
-from typing import TYPE_CHECKING, Any, cast
+from typing import Any
 
-import gymnasium as gym
-import numpy as np
+from agents.bench_env import bench_env_speed, bench_memory
 
-import tensegrity_gym  # noqa: F401  (registers the envs)
-
-if TYPE_CHECKING:
-    from tensegrity_gym.envs.roll_env import TensegrityEnv
-    from tensegrity_gym.sim.backend import SimBackend
-
-__all__ = ["bench_env_speed", "bench_memory", "run_benchmarks"]
-
-
-def _rss_mb() -> float:
-    """Resident set size of this process (MB)."""
-    with open("/proc/self/statm") as f:
-        pages = int(f.read().split()[1])
-    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
-def _bare_physics_rate(env: Any, steps: int) -> float:
-    """Physics steps per second of the same bodies with no cables, sensors or env."""
-    world = env.unwrapped.backend.world
-    t = time.perf_counter()
-    world.step_bare(steps)
-    return steps / (time.perf_counter() - t)
-
-
-def bench_env_speed(
-    env_id: str, steps: int, estimator: str = "oracle", seed: int = 0
-) -> dict[str, Any]:
-    """Env steps per second under uniformly random actions, resets included."""
-    env = gym.make(env_id, estimator=estimator)
-    rng = np.random.default_rng(seed)
-    env.reset(seed=seed)
-    shape = env.action_space.shape or ()
-    actions = rng.uniform(-1.0, 1.0, (steps, *shape)).astype(np.float32)
-    for a in actions[:20]:  # warm-up: caches, first allocations
-        env.step(a)
-    t = time.perf_counter()
-    for a in actions:
-        _, _, terminated, truncated, _ = env.step(a)
-        if terminated or truncated:
-            env.reset()
-    rate = steps / (time.perf_counter() - t)
-    backend = cast("SimBackend", cast("TensegrityEnv", env.unwrapped).backend)
-    physics_per_env_step = round(backend.control_period / backend.time_step)
-    env.reset(seed=seed)
-    bare = _bare_physics_rate(env, 20000) / physics_per_env_step
-    env.close()
-    return {
-        "env": env_id,
-        "estimator": estimator,
-        "steps": steps,
-        "env_steps_per_s": round(rate, 1),
-        "bare_physics_env_steps_per_s": round(bare, 1),
-        "fraction_of_ceiling": round(rate / bare, 3),
-    }
-
-
-def bench_memory(env_id: str, steps: int, seed: int = 0) -> dict[str, Any]:
-    """Growth of the process (MB) over ``steps`` env steps with episodes resetting."""
-    env = gym.make(env_id, estimator="ukf")
-    rng = np.random.default_rng(seed)
-    env.reset(seed=seed)
-    shape = env.action_space.shape
-
-    def run(n: int) -> None:
-        for _ in range(n):
-            _, _, terminated, truncated, _ = env.step(
-                rng.uniform(-1.0, 1.0, shape).astype(np.float32)
-            )
-            if terminated or truncated:
-                env.reset()
-
-    run(1000)  # warm-up
-    before = _rss_mb()
-    t = time.perf_counter()
-    run(steps)
-    elapsed = time.perf_counter() - t
-    after = _rss_mb()
-    env.close()
-    return {
-        "env": env_id,
-        "steps": steps,
-        "rss_before_mb": round(before, 1),
-        "rss_after_mb": round(after, 1),
-        "growth_mb": round(after - before, 2),
-        "env_steps_per_s": round(steps / elapsed, 1),
-    }
+__all__ = ["run_benchmarks"]
 
 
 def run_benchmarks(

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from agents.bench import bench_env_speed
+from agents.bench_env import bench_env_speed
 from agents.runs import record_run
 from estimation.icp import IcpEstimator, IcpParams
 from estimation.metrics import rod_errors, shape_errors

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, cast
 import gymnasium as gym
 import numpy as np
 
+from agents.bench_env import rss_mb
 from hardware.link import ZenohDriver
 from hardware.link.process import EmulatorProcess
 from tensegrity_gym.model.description import load_robot
@@ -27,14 +28,6 @@ if TYPE_CHECKING:
     from tensegrity_gym.envs.roll_env import TensegrityEnv
 
 __all__ = ["bench_latency", "bench_soak", "bench_throughput"]
-
-
-def _rss_mb(pid: int | str = "self") -> float:
-    with open(f"/proc/{pid}/status") as f:
-        for line in f:
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024.0
-    return float("nan")
 
 
 def _ms(values: list[float]) -> dict[str, float]:
@@ -150,8 +143,8 @@ def bench_soak(minutes: float = 30.0, seed: int = 0) -> dict[str, Any]:
             rows.append(
                 {
                     "minute": len(rows) + 1,
-                    "env_rss_mb": round(_rss_mb(), 1),
-                    "emulator_rss_mb": round(_rss_mb(emulator.process.pid), 1),
+                    "env_rss_mb": round(rss_mb(), 1),
+                    "emulator_rss_mb": round(rss_mb(emulator.process.pid), 1),
                     "driver_added_latency_ms": _ms(added),
                 }
             )

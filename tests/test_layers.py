@@ -105,3 +105,65 @@ def test_a_wrong_way_import_is_caught(tmp_path: Path) -> None:
     bad.write_text("from tensegrity_gym.sim.world import PhysicsWorld\n")
     name = _imports(bad)[0]
     assert _part(name) not in ALLOWED["estimation"] | {"estimation"}
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> the project modules it imports, function-level imports included.
+    ``from a.b import c`` names the module ``a.b.c`` when there is one, else ``a.b``."""
+    known = {m for m, _ in MODULES}
+    graph: dict[str, set[str]] = {}
+    for module, file in MODULES:
+        targets: set[str] = set()
+        for node in ast.walk(ast.parse(file.read_text())):
+            if isinstance(node, ast.Import):
+                targets |= {a.name for a in node.names if a.name in known}
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                subs = {f"{node.module}.{a.name}" for a in node.names} & known
+                targets |= subs or ({node.module} & known)
+        graph[module] = targets - {module}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan's algorithm)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_cycles_anywhere() -> None:
+    """Not between packages, not inside one, not behind a function-level import."""
+    assert _cycles(_import_graph()) == []
+
+
+def test_a_cycle_is_caught() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert _cycles(graph) == [["a", "b", "c"]]
