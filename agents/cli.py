@@ -14,6 +14,37 @@ __all__ = ["main"]
 log = logging.getLogger("tensegrity_gym")
 
 
+def _count(text: str) -> int:
+    """An argparse type: a whole number >= 0."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must not be negative, got {value}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    """An argparse type: a whole number >= 1."""
+    value = _count(text)
+    if value == 0:
+        raise argparse.ArgumentTypeError("must be at least 1, got 0")
+    return value
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """What a user can cause (a bad id, path, bag, robot YAML or config; a robot that does
+    not answer; an estimator that cannot start from the data; a missing optional
+    package): one line on stderr and exit status 2, a traceback only with --verbose."""
+    import gymnasium.error
+
+    from estimation.ukf.initialise import InitialisationError
+    from hardware.link.wire import LinkError
+
+    return (ValueError, OSError, ImportError, LinkError, InitialisationError, gymnasium.error.Error)
+
+
 def _demo(args: argparse.Namespace) -> int:
     from agents.main_job import run_main_job
 
@@ -209,11 +240,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="the main job: train PPO with the UKF in the loop (and on ground truth), "
         "evaluate, write the report",
     )
-    demo.add_argument("--timesteps", type=int, default=120_000, help="UKF training steps")
+    demo.add_argument("--timesteps", type=_positive_int, default=120_000, help="UKF training steps")
     demo.add_argument(
-        "--oracle-timesteps", type=int, default=80_000, help="ground-truth training (0: skip)"
+        "--oracle-timesteps", type=_count, default=80_000, help="ground-truth training (0: skip)"
     )
-    demo.add_argument("--episodes", type=int, default=5, help="evaluation episodes per row")
+    demo.add_argument(
+        "--episodes", type=_positive_int, default=5, help="evaluation episodes per row"
+    )
     demo.add_argument("--seed", type=int, default=0)
     demo.add_argument("--out", default="demo_out")
     demo.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -223,9 +256,11 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
     tr.add_argument("--algo", default="ppo", choices=list(ALGORITHMS))
     tr.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
-    tr.add_argument("--timesteps", type=int, default=None, help="default: the config's")
+    tr.add_argument("--timesteps", type=_positive_int, default=None, help="default: the config's")
     tr.add_argument("--seed", type=int, default=0)
-    tr.add_argument("--n-envs", type=int, default=None, help="workers; default: the config's")
+    tr.add_argument(
+        "--n-envs", type=_positive_int, default=None, help="workers; default: the config's"
+    )
     tr.add_argument("--config", default=None, help="hyperparameter YAML (rl-zoo3 layout)")
     tr.add_argument("--out", required=True)
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -235,7 +270,7 @@ def build_parser() -> argparse.ArgumentParser:
         "evaluate", help="evaluate trained policies under each estimator; write the report"
     )
     ev.add_argument("models", nargs="+", help="training run folders (from train)")
-    ev.add_argument("--episodes", type=int, default=10)
+    ev.add_argument("--episodes", type=_positive_int, default=10)
     ev.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=list(CONDITIONS))
     ev.add_argument("--seed", type=int, default=1000)
     ev.add_argument("--out", required=True)
@@ -243,16 +278,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     gait = sub.add_parser("gait", help="roll a robot with its scripted gait; plot the CoM")
     gait.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
-    gait.add_argument("--steps", type=int, default=300, help="control steps (10 Hz)")
+    gait.add_argument("--steps", type=_positive_int, default=300, help="control steps (10 Hz)")
     gait.add_argument("--seed", type=int, default=0)
     gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
     gait.add_argument("--out", default="gait_out", help="folder for the plot and summary")
     gait.set_defaults(func=_gait)
 
     bench = sub.add_parser("bench", help="measure env speed and memory; print JSON")
-    bench.add_argument("--steps", type=int, default=2000, help="env steps timed per env")
+    bench.add_argument("--steps", type=_positive_int, default=2000, help="env steps timed per env")
     bench.add_argument(
-        "--memory-steps", type=int, default=100_000, help="env steps of the memory test (0: skip)"
+        "--memory-steps",
+        type=_count,
+        default=100_000,
+        help="env steps of the memory test (0: skip)",
     )
     bench.add_argument(
         "--estimation",
@@ -288,8 +326,8 @@ def build_parser() -> argparse.ArgumentParser:
         default="scripted",
         help="scripted (the robot's face gait), random, or a training run folder (from train)",
     )
-    rec.add_argument("--episodes", type=int, default=1)
-    rec.add_argument("--steps", type=int, default=None, help="control steps per episode")
+    rec.add_argument("--episodes", type=_positive_int, default=1)
+    rec.add_argument("--steps", type=_positive_int, default=None, help="control steps per episode")
     rec.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
     rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
     rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
@@ -302,7 +340,13 @@ def build_parser() -> argparse.ArgumentParser:
     est.add_argument("bag", help="a bag, or a folder of bags (one per episode)")
     est.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
     est.add_argument("--out", required=True, help="folder for the results")
-    est.add_argument("--seed", type=int, default=0, help="seeds the estimator's initial belief")
+    est.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the generator handed to the estimator (the ICP tracker's RANSAC draws "
+        "from it; the UKF and the oracle are deterministic and draw nothing)",
+    )
     est.add_argument(
         "--robot", default=None, help="robot preset or YAML, for a bag without a description"
     )
@@ -329,7 +373,17 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(levelname)s %(name)s: %(message)s",
     )
-    return int(args.func(args))
+    try:
+        return int(args.func(args))
+    except KeyboardInterrupt:
+        log.warning("interrupted")
+        return 130
+    except _user_errors() as err:
+        if args.verbose:
+            log.exception("%s failed", args.command)
+        else:
+            log.error("%s", " ".join(str(err).split()) or type(err).__name__)
+        return 2
 
 
 if __name__ == "__main__":
