@@ -7,6 +7,7 @@ source explicitly by whoever builds the env.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -49,18 +50,35 @@ class OracleEstimator:
     def __init__(self, truth_source: Callable[[], GroundTruth | None]) -> None:
         self._truth_source = truth_source
         self._rest_lengths: NDArray[np.float64] = np.zeros(0)
+        self._last: Estimate | None = None
+
+    def initialisation_missing(
+        self, description: RobotDescription, calibration: SensorCalibration,
+        samples: Sequence[Sample],
+    ) -> str | None:  # fmt: skip
+        """What ``reset`` lacks: ground truth (the simulator's, or motion capture)."""
+        if self._truth_source() is None:
+            return "no ground truth (the simulator or motion capture) to read the state from"
+        return None
 
     def _estimate(self) -> Estimate:
         truth = self._truth_source()
         if truth is None:
-            raise RuntimeError("the oracle estimator needs a backend with ground truth")
-        return Estimate(
+            if self._last is None:
+                raise ValueError(
+                    "estimator='oracle' needs ground truth (the simulator or motion capture); "
+                    "this source has none"
+                )
+            # A motion-capture frame that did not come: the last state, marked unhealthy.
+            return replace(self._last, rest_lengths=self._rest_lengths, healthy=False)
+        self._last = Estimate(
             t=truth.t,
             node_positions=truth.node_positions,
             node_velocities=truth.node_velocities,
             com=truth.com,
             rest_lengths=self._rest_lengths,
         )
+        return self._last
 
     def reset(
         self,
@@ -71,6 +89,7 @@ class OracleEstimator:
         rng: np.random.Generator,
     ) -> Estimate:
         self._rest_lengths = latest_rest_lengths(samples, np.asarray(command, dtype=np.float64))
+        self._last = None
         return self._estimate()
 
     def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:

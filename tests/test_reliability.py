@@ -322,3 +322,27 @@ def test_the_simulated_imu_saturates_at_its_full_scale() -> None:
     accel = np.array([s.accel for s in samples])
     gyro = np.array([s.gyro for s in samples])
     assert np.abs(accel).max() == 2.0 and np.abs(gyro).max() == 1e-3
+
+
+def test_the_oracle_without_ground_truth_says_so_and_survives_a_dropped_frame() -> None:
+    from estimation.oracle import OracleEstimator
+
+    backend = SimBackend(THREE_BAR)
+    start = backend.reset(np.random.default_rng(0))
+    frames: list[Any] = [None]
+    oracle = OracleEstimator(lambda: frames[-1])
+    calibration = backend.calibration
+    command = THREE_BAR.rest_lengths[THREE_BAR.actuated]
+    missing = oracle.initialisation_missing(THREE_BAR, calibration, start.samples)
+    assert missing is not None and "ground truth" in missing
+    with pytest.raises(ValueError, match="needs ground truth"):
+        oracle.reset(THREE_BAR, calibration, start.samples, command, np.random.default_rng(0))
+    frames.append(backend.ground_truth())
+    assert oracle.initialisation_missing(THREE_BAR, calibration, start.samples) is None
+    first = oracle.reset(THREE_BAR, calibration, start.samples, command, np.random.default_rng(0))
+    assert first.healthy
+    frames.append(None)  # a motion-capture frame that did not come
+    held = oracle.update(backend.step(command).samples, command)
+    backend.close()
+    assert not held.healthy
+    np.testing.assert_array_equal(held.com, first.com)
