@@ -22,6 +22,7 @@ from __future__ import annotations
 import atexit
 import functools
 import logging
+import math
 import threading
 import time
 import weakref
@@ -84,9 +85,20 @@ class DriverTimeouts:
     """A stream that published and then went quiet this long is listed in ``info``."""
     settle: float = 15.0
     """``reset`` waits at most this long for the robot to come to rest."""
+    ready: float = 5.0
+    """At rest, ``reset`` waits at most this long more for what the estimator needs to
+    initialise (for the UKF: enough UWB ranges to anchors), then raises :class:`LinkError`."""
 
     def __post_init__(self) -> None:
-        names = ("connect", "first_samples", "stall", "link_lost", "sensor_quiet", "settle")
+        names = (
+            "connect",
+            "first_samples",
+            "stall",
+            "link_lost",
+            "sensor_quiet",
+            "settle",
+            "ready",
+        )
         check_fields(self, names, positive=True)
         if self.link_lost <= self.stall:
             raise ValueError(
@@ -165,6 +177,8 @@ class ZenohDriver:
         self._last_activity = 0.0  # monotonic time of the newest command
         self._last_sensor = 0.0
         self._last_by_stream: dict[str, float] = {}
+        self._drained_at: float | None = None  # monotonic time of the last look at the inbox
+        self._listening_since = 0.0  # ... and since when the driver has looked without a gap
         self._deadline: float | None = None
         self._closed = False
         self.last_heartbeat: float | None = None
@@ -254,8 +268,27 @@ class ZenohDriver:
 
     # ------------------------------------------------------------------ receiving
 
+    def _note_listening(self, now: float) -> None:
+        """Remember that the driver looks at its inbox at ``now`` (monotonic s).
+
+        After a gap longer than ``timeouts.stall`` since the last look (the process was
+        suspended: a debugger, a laptop lid, a long GC pause), listening starts anew:
+        what the robot sent meanwhile may still be in the socket or in Zenoh's threads,
+        so its silence is only judged over the time the driver listened."""
+        if self._drained_at is None or now - self._drained_at > self.timeouts.stall:
+            self._listening_since = now
+        self._drained_at = now
+
+    def _listened(self, since: float) -> float:
+        """Seconds the driver has listened without a gap since ``since`` (monotonic s),
+        up to its last look at the inbox."""
+        if self._drained_at is None:
+            return 0.0
+        return max(self._drained_at - max(since, self._listening_since), 0.0)
+
     def _drain(self) -> None:
         """Decode what was queued when the call began (a bounded amount of work)."""
+        self._note_listening(time.monotonic())
         with self._inbox_lock:
             batch, self._inbox = self._inbox, deque()
             self._inbox_used = 0
@@ -307,12 +340,13 @@ class ZenohDriver:
         return counts
 
     def _wait_for(self, what: str, ready: Any, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
+        """Collect until ``ready()``; LinkError after listening ``timeout`` seconds."""
+        start = time.monotonic()
         while True:
             self._collect(time.monotonic())
             if ready():
                 return
-            if time.monotonic() >= deadline:
+            if self._listened(start) >= timeout:
                 raise LinkError(
                     f"robot at {self.address}: no {what} within {timeout:g} s "
                     f"({self._received} messages received)"
@@ -351,18 +385,14 @@ class ZenohDriver:
     def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
         """Connect if needed, wait for the robot's calibration and first samples, bring
         the motors to the description's rest lengths, and wait for the robot to come to
-        rest. Nothing is moved by hand: the robot stays where it is. Returns the samples
-        of the last :data:`RESET_PERIODS` control periods."""
+        rest. Nothing is moved by hand: the robot stays where it is.
+
+        Returns the samples of the last :data:`RESET_PERIODS` control periods, or more
+        where ``ready(samples)`` said something was missing: then ``reset`` collects
+        further periods at rest until it returns None, and after ``timeouts.ready``
+        seconds sends a stop command and raises :class:`LinkError` quoting it."""
         self.connect()
-        self._deadline = None
-        self._drain()  # what came before this episode is not part of it
-        self._assembler = SampleAssembler(self.codec, self._skip, order="sort")
-        self._skipped.clear()
-        with self._inbox_lock:
-            self._oversized = self._overflow = 0
-        self._truth, self._encoders = None, None
-        self._header.clear()  # the robot may have restarted: read its header anew
-        self._last_by_stream.clear()
+        self._begin_episode()
         t = self.timeouts
         wanted = "/tensegrity/calibration" if self._given_calibration is None else None
         self._wait_for(
@@ -375,26 +405,74 @@ class ZenohDriver:
         self.limiter.reset(self._encoders)
         d = self.description
         nominal = d.rest_lengths[d.actuated]
-        start = time.monotonic()
-        settled = False
-        # The estimator starts from the last RESET_PERIODS periods at rest: enough UWB
-        # rounds to place the robot even when packets are lost.
-        recent: deque[list[Sample]] = deque(maxlen=RESET_PERIODS)
-        while time.monotonic() - start < t.settle:
-            result = self._period(self.limiter(nominal))
-            recent.append(list(result.samples))
-            if len(recent) == RESET_PERIODS and self._at_rest(recent[-1], nominal):
-                settled = True
-                break
-        samples = [s for period in recent for s in period]
+        recent, settled = self._settle(nominal)
         if not settled:
             log.warning(
                 "robot at %s did not come to rest within %.1f s; starting anyway",
                 self.address,
                 t.settle,
             )
+        samples = self._until_ready(recent, nominal, ready)
         info = {"robot_settled": settled, **self._link_info(overrun=False, stalled=False)}
         return StepResult(samples, info=info)
+
+    def _begin_episode(self) -> None:
+        """Forget what came before this episode: samples, counts, the robot's header."""
+        self._deadline = None
+        self._drain()  # what came before this episode is not part of it
+        self._assembler = SampleAssembler(self.codec, self._skip, order="sort")
+        self._skipped.clear()
+        with self._inbox_lock:
+            self._oversized = self._overflow = 0
+        self._truth, self._encoders = None, None
+        self._header.clear()  # the robot may have restarted: read its header anew
+        self._last_by_stream.clear()
+
+    def _settle(self, nominal: NDArray[np.float64]) -> tuple[deque[list[Sample]], bool]:
+        """Command ``nominal`` (m) until the robot is at rest, at most
+        ``timeouts.settle`` seconds; the last :data:`RESET_PERIODS` periods' samples,
+        and whether it came to rest."""
+        # The estimator starts from the last RESET_PERIODS periods at rest: enough UWB
+        # rounds to place the robot even when packets are lost.
+        recent: deque[list[Sample]] = deque(maxlen=RESET_PERIODS)
+        start = time.monotonic()
+        while time.monotonic() - start < self.timeouts.settle:
+            result = self._period(self.limiter(nominal))
+            recent.append(list(result.samples))
+            if len(recent) == RESET_PERIODS and self._at_rest(recent[-1], nominal):
+                return recent, True
+        return recent, False
+
+    def _until_ready(
+        self,
+        recent: deque[list[Sample]],
+        nominal: NDArray[np.float64],
+        ready: ReadyCheck | None,
+    ) -> list[Sample]:
+        """The samples of ``recent`` periods, extended by further periods at rest
+        (commanding ``nominal``, m) while ``ready`` says something is missing; at most
+        ``timeouts.ready`` seconds of listening, then a stop command and LinkError."""
+        samples = [s for period in recent for s in period]
+        missing = None if ready is None else ready(samples)
+        if ready is None or missing is None:
+            return samples
+        timeout = self.timeouts.ready
+        log.info("robot at %s: waiting for what the estimator lacks: %s", self.address, missing)
+        # The window grows with the wait, up to every period of it.
+        bound = RESET_PERIODS + math.ceil(timeout / self.control_period)
+        window = deque(recent, maxlen=bound)
+        start = time.monotonic()
+        while self._listened(start) < timeout:
+            window.append(list(self._period(self.limiter(nominal)).samples))
+            samples = [s for period in window for s in period]
+            missing = ready(samples)
+            if missing is None:
+                return samples
+        self.stop()
+        raise LinkError(
+            f"robot at {self.address}: the estimator cannot initialise: {missing} "
+            f"(still missing after {timeout:g} s at rest, timeouts.ready); motors told to hold"
+        )
 
     def _at_rest(self, samples: list[Sample], nominal: NDArray[np.float64]) -> bool:
         """The motors are at ``nominal`` and no gyro turns (a robot without raw IMU
@@ -420,9 +498,10 @@ class ZenohDriver:
         while (left := self._deadline - time.monotonic()) > 0:
             time.sleep(min(left, 0.02))
             self._drain()  # keep the inbox short and decode while waiting
-        end = time.monotonic()
-        samples = self._collect(end)
-        quiet = end - self._last_sensor
+        samples = self._collect(time.monotonic())
+        # Judged after draining, over the time the driver listened: a process that was
+        # suspended does not blame the robot for what is still on its way.
+        quiet = self._listened(self._last_sensor)
         if quiet > self.timeouts.link_lost:
             self.stop()
             raise LinkError(
@@ -436,9 +515,10 @@ class ZenohDriver:
         return StepResult(samples, info=info, command=command)
 
     def _link_info(self, overrun: bool, stalled: bool) -> dict[str, Any]:
-        now = time.monotonic()
         quiet = sorted(
-            s for s, t in self._last_by_stream.items() if now - t > self.timeouts.sensor_quiet
+            s
+            for s, t in self._last_by_stream.items()
+            if self._listened(t) > self.timeouts.sensor_quiet
         )
         return {
             "link_stalled": stalled,

@@ -32,6 +32,8 @@ from tensegrity_gym.model.samples import UwbRangeSample
 from tensegrity_gym.sim.backend import SimBackend
 
 if TYPE_CHECKING:
+    from collections.abc import Collection
+
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
@@ -130,6 +132,8 @@ class Emulator:
         camera: render and publish RGB-D frames at the camera's rate.
         truth: publish ground truth (as a motion-capture system would) every tick.
         watchdog_timeout: seconds without a heartbeat after which the motors hold.
+        muted: topics never published (a sensor missing or switched off: ``/uwb/ranges``
+            for a robot whose anchors are off).
     """
 
     def __init__(
@@ -142,6 +146,7 @@ class Emulator:
         camera: bool = False,
         truth: bool = True,
         watchdog_timeout: float = 0.15,
+        muted: Collection[str] = (),
     ) -> None:
         self.description = description
         self.address = address
@@ -149,6 +154,10 @@ class Emulator:
         self.camera = camera
         self.truth = truth
         self.codec = RobotCodec(description)
+        unknown = sorted(set(muted) - set(self.codec.topics.types))
+        if unknown:
+            raise ValueError(f"cannot mute {unknown}: not topics of {description.name}")
+        self.muted = frozenset(muted)
         self.stats = EmulatorStats()
         self.watchdog = Watchdog(watchdog_timeout)
         self._rng = np.random.default_rng(seed)
@@ -173,6 +182,8 @@ class Emulator:
     # ------------------------------------------------------------------ wire
 
     def _publish_now(self, topic: str, raw: bytes) -> None:
+        if topic in self.muted:
+            return
         self._publishers[topic].put(raw)
         self.stats.published += 1
 
@@ -408,6 +419,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="seconds without a heartbeat after which the motors hold",
     )
     parser.add_argument("--duration", type=float, default=None, help="stop after this many s")
+    parser.add_argument(
+        "--mute",
+        action="append",
+        default=[],
+        metavar="TOPIC",
+        help="never publish this topic (a sensor missing or off); repeatable",
+    )
 
 
 def run_from_args(args: argparse.Namespace) -> int:
@@ -441,6 +459,7 @@ def run_from_args(args: argparse.Namespace) -> int:
             camera=args.camera,
             truth=not args.no_truth,
             watchdog_timeout=args.watchdog,
+            muted=args.mute,
         )
     except (ValueError, DescriptionError) as err:
         log.error("%s", err)

@@ -16,7 +16,9 @@ Env to robot: ``/commands/rest_length_targets`` and ``/tensegrity/heartbeat``.
 from __future__ import annotations
 
 import json
+import math
 import re
+import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -112,12 +114,20 @@ class LinkAddress:
         return f"{self.prefix}/**" if self.prefix else "**"
 
 
-def session_config(address: LinkAddress, *, listen: bool) -> zenoh.Config:
+def session_config(
+    address: LinkAddress, *, listen: bool, open_timeout: float = 10.0
+) -> zenoh.Config:
     """A Zenoh configuration that talks to ``address`` only: multicast scouting off, so
-    that robots and tests on one network do not find each other by accident."""
+    that robots and tests on one network do not find each other by accident.
+
+    ``open_timeout`` (s) bounds one attempt to open the transport, the handshake
+    included: a port that accepts connections and never answers (a silent listener)
+    holds an attempt this long (Zenoh's own default is 10 s)."""
     import zenoh
 
     config = zenoh.Config()
+    open_ms = max(1, math.ceil(open_timeout * 1000.0))
+    config.insert_json5("transport/unicast/open_timeout", json.dumps(open_ms))
     config.insert_json5("mode", json.dumps("peer" if listen else address.mode))
     config.insert_json5("scouting/multicast/enabled", "false")
     if listen:
@@ -136,17 +146,19 @@ def session_config(address: LinkAddress, *, listen: bool) -> zenoh.Config:
 
 def open_session(address: LinkAddress, *, listen: bool, timeout: float) -> zenoh.Session:
     """A Zenoh session to (or, with ``listen``, serving at) ``address``; retries for up
-    to ``timeout`` seconds, then raises :class:`LinkError` naming the address."""
-    import time
+    to ``timeout`` seconds, then raises :class:`LinkError` naming the address.
 
+    Each attempt may block (a silent listener holds the handshake), so each is bounded
+    by the time left, not only checked between attempts."""
     import zenoh
 
     deadline = time.monotonic() + timeout
     while True:
+        left = deadline - time.monotonic()
         try:
-            return zenoh.open(session_config(address, listen=listen))
+            return zenoh.open(session_config(address, listen=listen, open_timeout=left))
         except zenoh.ZError as err:
-            if time.monotonic() >= deadline:
+            if time.monotonic() >= deadline - 0.1:  # no time for another attempt
                 verb = "listen at" if listen else "reach the robot at"
                 raise LinkError(f"could not {verb} {address} within {timeout:g} s: {err}") from None
             time.sleep(0.1)
