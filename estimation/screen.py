@@ -63,6 +63,21 @@ class StreamMonitor:
             failed = not failed
         return not failed
 
+    def observe_many(
+        self, stream: str, times: NDArray[np.float64], plausible: NDArray[np.bool_]
+    ) -> NDArray[np.bool_]:
+        """:meth:`observe` each of (k,) samples in order; (k,) True where in use."""
+        if stream not in self._failed and plausible.all():
+            self._since.pop(stream, None)  # the common case, at once
+            return np.ones(len(times), dtype=bool)
+        return np.array(
+            [
+                self.observe(stream, float(t), bool(p))
+                for t, p in zip(times, plausible, strict=True)
+            ],
+            dtype=bool,
+        )
+
     @property
     def failed(self) -> tuple[str, ...]:
         """The failed streams, sorted."""
@@ -73,6 +88,17 @@ def _vector(values: ArrayLike, width: int) -> NDArray[np.float64]:
     """``values`` as a (width,) vector, or NaN where it is of another size."""
     x = np.asarray(values, dtype=np.float64).reshape(-1)
     return x if x.shape == (width,) else np.full(width, np.nan)
+
+
+def _stack(rows: Sequence[ArrayLike], width: int) -> NDArray[np.float64]:
+    """(k, width): one row a reading, NaN rows for readings of another size."""
+    try:
+        x = np.asarray(rows, dtype=np.float64)
+        if x.shape == (len(rows), width):
+            return x
+    except ValueError:  # readings of different sizes
+        pass
+    return np.stack([_vector(r, width) for r in rows])
 
 
 class PlausibilityScreen:
@@ -119,22 +145,24 @@ class PlausibilityScreen:
     def screen(self, samples: Sequence[Sample]) -> list[Sample]:
         """The samples to use, in their order."""
         out: list[Sample | None] = list(samples)
+        where: dict[type, list[int]] = {}
+        for i, s in enumerate(samples):
+            where.setdefault(type(s), []).append(i)
         # IMU, AHRS and encoder readings come many a period: judged as one batch each.
-        batched: tuple[tuple[type, Callable[[list[Any]], list[Sample | None]]], ...] = (
+        batched: tuple[tuple[type, Callable[[list[Any]], list[bool]]], ...] = (
             (ImuSample, self._imu),
             (AhrsSample, self._ahrs),
             (EncoderSample, self._encoders),
         )
         for kind, judge in batched:
-            where = [i for i, s in enumerate(samples) if isinstance(s, kind)]
-            if where:
-                for i, kept in zip(where, judge([samples[i] for i in where]), strict=True):
-                    out[i] = kept
-        for i, s in enumerate(samples):
-            if isinstance(s, UwbRangeSample):
-                out[i] = self._round(s)
-            elif isinstance(s, CableLengthSample):
-                out[i] = self._cables(s)
+            if kind in where:
+                use = judge([samples[i] for i in where[kind]])
+                for i, u in zip(where[kind], use, strict=True):
+                    out[i] = samples[i] if u else None
+        for i in where.get(UwbRangeSample, []):
+            out[i] = self._round(samples[i])  # type: ignore[arg-type]
+        for i in where.get(CableLengthSample, []):
+            out[i] = self._cables(samples[i])  # type: ignore[arg-type]
         return [s for s in out if s is not None]
 
     def _count(self, kind: str, n: int) -> None:
@@ -149,35 +177,34 @@ class PlausibilityScreen:
         self, samples: Sequence[ImuSample | AhrsSample], verdict: Verdict, prefix: str
     ) -> list[bool]:
         """Count and monitor the per-rod streams ``prefix/<rod>``; True for samples to use."""
-        valid = np.array([0 <= s.rod < len(self._rods) for s in samples], dtype=bool)
+        rods = np.array([s.rod for s in samples], dtype=np.intp)
+        valid = (rods >= 0) & (rods < len(self._rods))
         self._count(f"{prefix}_bad_rod", int(np.count_nonzero(~valid)))
         self._count_verdict(verdict, valid)
-        use = []
-        for s, ok, rod_ok in zip(samples, verdict.plausible, valid, strict=True):
-            in_use = rod_ok and self.monitor.observe(f"{prefix}/{self._rods[s.rod]}", s.t, ok)
-            use.append(bool(in_use and ok))
-        return use
+        use = verdict.plausible & valid
+        times = np.array([s.t for s in samples], dtype=np.float64)
+        for rod in np.unique(rods[valid]).tolist():
+            mine = rods == rod
+            stream = f"{prefix}/{self._rods[rod]}"
+            use[mine] &= self.monitor.observe_many(stream, times[mine], verdict.plausible[mine])
+        return [bool(u) for u in use]
 
-    def _imu(self, samples: list[ImuSample]) -> list[Sample | None]:
-        accel = np.stack([_vector(s.accel, 3) for s in samples])
-        gyro = np.stack([_vector(s.gyro, 3) for s in samples])
-        use = self._per_rod(samples, self.bounds.imu(accel, gyro), "imu")
-        return [s if u else None for s, u in zip(samples, use, strict=True)]
+    def _imu(self, samples: list[ImuSample]) -> list[bool]:
+        accel = _stack([s.accel for s in samples], 3)
+        gyro = _stack([s.gyro for s in samples], 3)
+        return self._per_rod(samples, self.bounds.imu(accel, gyro), "imu")
 
-    def _ahrs(self, samples: list[AhrsSample]) -> list[Sample | None]:
-        q = np.stack([_vector(s.quaternion, 4) for s in samples])
-        use = self._per_rod(samples, self.bounds.ahrs(q), "ahrs")
-        return [s if u else None for s, u in zip(samples, use, strict=True)]
+    def _ahrs(self, samples: list[AhrsSample]) -> list[bool]:
+        return self._per_rod(
+            samples, self.bounds.ahrs(_stack([s.quaternion for s in samples], 4)), "ahrs"
+        )
 
-    def _encoders(self, samples: list[EncoderSample]) -> list[Sample | None]:
-        rest = np.stack([_vector(s.rest_lengths, self._n_actuated) for s in samples])
-        verdict = self.bounds.encoders(rest)
+    def _encoders(self, samples: list[EncoderSample]) -> list[bool]:
+        verdict = self.bounds.encoders(_stack([s.rest_lengths for s in samples], self._n_actuated))
         self._count_verdict(verdict)
-        out: list[Sample | None] = []
-        for s, ok in zip(samples, verdict.plausible, strict=True):
-            in_use = self.monitor.observe("encoders", s.t, bool(ok))
-            out.append(s if in_use and ok else None)
-        return out
+        times = np.array([s.t for s in samples], dtype=np.float64)
+        in_use = self.monitor.observe_many("encoders", times, verdict.plausible)
+        return [bool(u) for u in in_use & verdict.plausible]
 
     def _cables(self, sample: CableLengthSample) -> CableLengthSample | None:
         x = np.asarray(sample.lengths, dtype=np.float64).reshape(-1)

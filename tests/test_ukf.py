@@ -116,8 +116,8 @@ def _record(env_id: str, steps: int, seed: int, policy: str = "gait") -> Recordi
     kept: dict[str, Any] = {}
     reset, step = backend.reset, backend.step
 
-    def recording_reset(rng: np.random.Generator) -> Any:
-        result = reset(rng)
+    def recording_reset(rng: np.random.Generator, **kwargs: Any) -> Any:
+        result = reset(rng, **kwargs)  # ready= where the backend can wait
         kept["start"] = list(result.samples)
         kept["truth"] = backend.ground_truth()
         return result

@@ -3,8 +3,13 @@
 Each control period the filter predicts the spring-mass net forward with the motor
 encoders' rest lengths as its input, then corrects it with what arrived: rod axes from
 the AHRS, UWB ranges minus the pair offsets, cable lengths, and the rod-length and
-ground-contact pseudo-measurements. Outliers are gated; a filter that diverges
-re-initialises itself from recent samples and says so in the estimate.
+ground-contact pseudo-measurements. Before anything is kept, readings that are
+physically implausible are dropped and counted (:mod:`estimation.screen`), and a stream
+that gives nothing plausible for ``stream_failure_window`` is failed and not used until
+it has been plausible as long. Outliers are gated; a filter that diverges
+re-initialises itself from recent samples, never from what the gate rejected, and says
+so in the estimate. An estimate is unhealthy after ``max_prediction_time`` without a
+sensor row fused.
 """
 
 from __future__ import annotations
