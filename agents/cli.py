@@ -231,9 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    from agents.evaluate import CONDITIONS
+    from agents.evaluate import CONDITIONS, condition_names
     from agents.train import ALGORITHMS
-    from tensegrity_gym.envs.factory import ESTIMATORS
+    from tensegrity_gym.model.registry import ESTIMATORS
 
     demo = sub.add_parser(
         "demo",
@@ -255,7 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr = sub.add_parser("train", help="train a policy with stable-baselines3")
     tr.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
     tr.add_argument("--algo", default="ppo", choices=list(ALGORITHMS))
-    tr.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    tr.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
     tr.add_argument("--timesteps", type=_positive_int, default=None, help="default: the config's")
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument(
@@ -271,7 +271,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument("models", nargs="+", help="training run folders (from train)")
     ev.add_argument("--episodes", type=_positive_int, default=10)
-    ev.add_argument("--conditions", nargs="+", default=list(CONDITIONS), choices=list(CONDITIONS))
+    ev.add_argument(
+        "--conditions",
+        nargs="+",
+        default=list(CONDITIONS),
+        choices=condition_names(),
+    )
     ev.add_argument("--seed", type=int, default=1000)
     ev.add_argument("--out", required=True)
     ev.set_defaults(func=_evaluate)
@@ -280,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     gait.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
     gait.add_argument("--steps", type=_positive_int, default=300, help="control steps (10 Hz)")
     gait.add_argument("--seed", type=int, default=0)
-    gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
     gait.add_argument("--out", default="gait_out", help="folder for the plot and summary")
     gait.set_defaults(func=_gait)
 
@@ -329,7 +334,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--episodes", type=_positive_int, default=1)
     rec.add_argument("--steps", type=_positive_int, default=None, help="control steps per episode")
     rec.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
-    rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
     rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
     rec.add_argument("--out", required=True, help="folder for the bags (episode_000, ...)")
     rec.set_defaults(func=_record)
@@ -338,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
         "estimate", help="run an estimator over a bag; write its trajectory, metrics, plots"
     )
     est.add_argument("bag", help="a bag, or a folder of bags (one per episode)")
-    est.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS))
+    est.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
     est.add_argument("--out", required=True, help="folder for the results")
     est.add_argument(
         "--seed",

@@ -20,6 +20,7 @@ import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the ids)
 from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
@@ -35,6 +36,8 @@ __all__ = [
     "Condition",
     "EpisodeResult",
     "LoadedPolicy",
+    "condition",
+    "condition_names",
     "count_rolls",
     "evaluate_policy",
     "load_policy",
@@ -87,6 +90,22 @@ CONDITIONS: dict[str, Condition] = {
         Condition("ukf_imu_noise", "ukf", _noisier_imu, "IMU noise and biases x5"),
     )
 }
+
+
+def condition_names() -> list[str]:
+    """Every condition :func:`condition` knows: :data:`CONDITIONS`, then the other
+    registered estimators."""
+    return [*CONDITIONS, *(n for n in ESTIMATORS.names() if n not in CONDITIONS)]
+
+
+def condition(name: str) -> Condition:
+    """A condition of :data:`CONDITIONS` by name, or any registered estimator on the
+    nominal sensors (a lab's own estimator is evaluated as ``--conditions NAME``)."""
+    if name in CONDITIONS:
+        return CONDITIONS[name]
+    if name in ESTIMATORS:
+        return Condition(name, name, None, estimator_spec(name).summary or name)
+    raise ValueError(f"unknown condition {name!r}; valid choices: {condition_names()}")
 
 
 def count_rolls(node_z: NDArray[np.float64], hold: int = 3) -> int:

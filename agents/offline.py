@@ -26,7 +26,8 @@ from estimation.ukf.initialise import InitialisationError
 from hardware.bag.reader import find_bags
 from hardware.bag.replay import ReplayBackend
 from hardware.recording import hold_command
-from tensegrity_gym.envs.factory import ESTIMATORS, make_estimator
+from tensegrity_gym.envs.factory import make_estimator
+from tensegrity_gym.model.registry import estimator_spec
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -207,8 +208,7 @@ def estimate_bag(
         BagsFailedError: some bags of a folder cannot be; the others were estimated,
             and each failure was logged in one line.
     """
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"unknown estimator {estimator!r}; valid choices: {list(ESTIMATORS)}")
+    estimator_spec(estimator)  # an unknown name is refused before any bag is opened
     bags = find_bags(bag)
 
     def one(path: Path, folder: Path) -> dict[str, Any]:
@@ -241,13 +241,11 @@ def _estimate_one(
 ) -> dict[str, Any]:
     backend = ReplayBackend(path, description=description, strict=strict)
     try:
-        if estimator == "oracle" and not backend.reader.has_truth:
-            raise ValueError(f"{path}: estimator 'oracle' needs ground truth; the bag has none")
-        if estimator == "icp" and "/camera/depth/image_raw" not in backend.reader.topics:
-            raise ValueError(
-                f"{path}: estimator 'icp' needs RGB-D frames; the bag has none (record with "
-                "--estimator icp to record them)"
-            )
+        missing = estimator_spec(estimator).missing(
+            backend.sample_kinds(), backend.description.name
+        )
+        if missing is not None:
+            raise ValueError(f"{path}: {missing}")
         wall = time.perf_counter()
         estimates, truths = _run_estimator(backend, estimator, seed, progress)
         wall = time.perf_counter() - wall

@@ -11,6 +11,7 @@ import numpy as np
 
 from agents.evaluate import (
     CONDITIONS,
+    condition,
     evaluate_policy,
     load_policy,
     random_policy,
@@ -124,9 +125,7 @@ def write_report(
 ) -> dict[str, Any]:
     """Evaluate the trained policies of ``run_dirs`` (and a random policy) under
     ``conditions``; write ``report.md``, ``report.json`` and the plots into ``out``."""
-    unknown = [c for c in conditions if c not in CONDITIONS]
-    if unknown:
-        raise ValueError(f"unknown conditions {unknown}; valid choices: {list(CONDITIONS)}")
+    chosen = {c: condition(c) for c in conditions}  # an unknown name is refused here
     if not run_dirs:
         raise ValueError("no trained model to evaluate")
     policies: list[LoadedPolicy] = [load_policy(d) for d in run_dirs]
@@ -146,7 +145,7 @@ def write_report(
         results[policy.name] = {}
         for cond in conditions:
             log.info("evaluating %s under %s", policy.name, cond)
-            results[policy.name][cond] = evaluate_policy(policy, CONDITIONS[cond], episodes, seed)
+            results[policy.name][cond] = evaluate_policy(policy, chosen[cond], episodes, seed)
     table = {p: {c: summarise(r) for c, r in by_cond.items()} for p, by_cond in results.items()}
 
     checks: dict[str, Any] = {}
@@ -178,7 +177,7 @@ def write_report(
         "env": env_id,
         "episodes": episodes,
         "seed": seed,
-        "conditions": {c: CONDITIONS[c].about for c in conditions},
+        "conditions": {c: chosen[c].about for c in conditions},
         "results": table,
         "checks": checks,
         "runs": [str(d) for d in run_dirs],

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from tensegrity_gym.envs.factory import ESTIMATORS
+from tensegrity_gym.model.registry import estimator_spec
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -181,8 +181,7 @@ def train(
     from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
-    if estimator not in ESTIMATORS:
-        raise ValueError(f"unknown estimator {estimator!r}; valid choices: {list(ESTIMATORS)}")
+    estimator_spec(estimator)  # an unknown name is refused before anything starts
     if env_id not in gym.registry:
         import tensegrity_gym  # noqa: F401  (registers the ids)
     if env_id not in gym.registry:

@@ -224,7 +224,7 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
     for name in ("com_paths.png", "estimation_error.png", "training.png", "report.json"):
         assert (tmp_path / "report" / name).stat().st_size > 0
     assert json.loads((tmp_path / "report" / "report.json").read_text())["env"] == THREE_BAR
-    with pytest.raises(ValueError, match="unknown conditions"):
+    with pytest.raises(ValueError, match="unknown condition"):
         write_report([tiny_run], tmp_path / "r2", conditions=("ukf", "fog"))
 
 

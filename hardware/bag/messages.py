@@ -22,9 +22,11 @@ from typing import TYPE_CHECKING, Any
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from tensegrity_gym.model.samples import seconds_to_ns
+from tensegrity_gym.model.samples import GROUND_TRUTH, seconds_to_ns
 
 if TYPE_CHECKING:
+    from collections.abc import Iterable
+
     from rosbags.typesys.store import Typestore
 
     from tensegrity_gym.model.description import RobotDescription
@@ -32,11 +34,13 @@ if TYPE_CHECKING:
 __all__ = [
     "CUSTOM_MESSAGES",
     "FIXED_TOPICS",
+    "TOPIC_KINDS",
     "TopicTable",
     "decode_imu",
     "decode_magnetic_field",
     "encode_imu",
     "encode_magnetic_field",
+    "sample_kinds_of_topics",
     "stamp",
     "stamp_ns",
     "typestore",
@@ -88,6 +92,29 @@ ROD_TOPICS: dict[str, tuple[str, str]] = {
     "/{rod}/imu/mag": (MAGNETIC_FIELD, "magnetometer (T), body frame"),
     "/{rod}/imu/data": (IMU, "the on-board AHRS orientation, body to world"),
 }
+
+TOPIC_KINDS: dict[str, str] = {
+    "/{rod}/imu/data_raw": "imu",
+    "/{rod}/imu/data": "ahrs",
+    "/motors/rest_lengths": "encoders",
+    "/cables/lengths": "cable_lengths",
+    "/uwb/ranges": "uwb",
+    "/contacts": "contacts",
+    "/camera/depth/image_raw": "rgbd",
+    "/ground_truth/state": GROUND_TRUTH,
+}
+"""The topic that carries each sample kind (:data:`SAMPLE_KINDS`) and ground truth."""
+
+
+def sample_kinds_of_topics(topics: Iterable[str], description: RobotDescription) -> frozenset[str]:
+    """The sample kinds (and ``"ground_truth"``) a set of topics carries."""
+    present = set(topics)
+    kinds = set()
+    for pattern, kind in TOPIC_KINDS.items():
+        names = {pattern.format(rod=rod.name) for rod in description.rods}
+        if names & present:
+            kinds.add(kind)
+    return frozenset(kinds)
 
 
 @cache

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hardware.bag.messages import sample_kinds_of_topics
 from hardware.bag.reader import BagReader
 from tensegrity_gym.model.protocols import StepResult
 from tensegrity_gym.model.samples import RgbdFrame
@@ -133,6 +134,10 @@ class ReplayBackend:
             command=command,
             ended=self._next is None,
         )
+
+    def sample_kinds(self) -> frozenset[str]:
+        """The sample kinds (and ``"ground_truth"``) the bag's topics carry."""
+        return sample_kinds_of_topics(self.reader.topics, self.description)
 
     def ground_truth(self) -> GroundTruth | None:
         return self._truth

@@ -9,43 +9,33 @@ from typing import TYPE_CHECKING
 from tensegrity_gym.envs.roll_env import TensegrityEnv
 from tensegrity_gym.model.checks import check_number
 from tensegrity_gym.model.description import RobotDescription, load_robot
-from tensegrity_gym.model.protocols import Backend, Estimator
+from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
+from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec
 from tensegrity_gym.tasks.roll import RollTask
 
 if TYPE_CHECKING:
     from pathlib import Path
 
 
-__all__ = ["ESTIMATORS", "make_backend", "make_estimator", "make_roll_env"]
-
-ESTIMATORS = ("oracle", "ukf", "icp")
-"""Estimator names ``make`` accepts; more join as they are implemented."""
+__all__ = ["make_backend", "make_estimator", "make_roll_env"]
 
 
 def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
-    """An estimator by name, or the given object if it already is one."""
+    """An estimator by its registered name (:mod:`tensegrity_gym.model.registry`), or the
+    given object if it already is one. Refused, naming what is missing, when the backend
+    cannot give what the estimator needs."""
     if not isinstance(name, str):
         if not isinstance(name, Estimator):
             raise TypeError(
-                f"estimator must be one of {list(ESTIMATORS)} or an object with "
+                f"estimator must be one of {list(ESTIMATORS.names())} or an object with "
                 f"reset() and update(); got {type(name).__name__}"
             )
         return name
-    if name == "oracle":
-        from estimation.oracle import OracleEstimator
-
-        if backend.ground_truth is None:  # pragma: no cover - every backend has the method
-            raise ValueError("estimator='oracle' needs a backend with ground truth")
-        return OracleEstimator(backend.ground_truth)
-    if name == "ukf":
-        from estimation.ukf import UkfEstimator
-
-        return UkfEstimator()
-    if name == "icp":
-        from estimation.icp import IcpEstimator
-
-        return IcpEstimator()
-    raise ValueError(f"unknown estimator {name!r}; valid choices: {list(ESTIMATORS)}")
+    spec = estimator_spec(name)
+    missing = spec.missing(backend_sample_kinds(backend), backend.description.name)
+    if missing is not None:
+        raise ValueError(f"make: {missing}")
+    return spec.create(backend.ground_truth)
 
 
 _BACKEND_MEMBERS = (
@@ -169,9 +159,10 @@ def make_roll_env(
 
     Args:
         robot: a preset name, a YAML path or a loaded description.
-        estimator: ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
+        estimator: a registered name (:data:`tensegrity_gym.model.registry.ESTIMATORS`):
+            ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
             ``"icp"`` (the RGB-D tracker of papers/003; renders camera frames),
-            ``"oracle"`` (ground truth, simulation only) or an Estimator object.
+            ``"oracle"`` (ground truth), a lab's own; or an Estimator object.
         driver: ``None`` for the PyBullet simulation, ``"zenoh/tcp/HOST:PORT"`` for a
             robot (or the emulator) on the network, ``"bag:PATH"`` to replay a recorded
             bag (its commands drive it; the policy's actions are ignored), or a Backend
@@ -185,8 +176,8 @@ def make_roll_env(
     """
     description = robot if isinstance(robot, RobotDescription) else load_robot(robot)
     est_name = estimator if isinstance(estimator, str) else None
-    if est_name is not None and est_name not in ESTIMATORS:
-        raise ValueError(f"unknown estimator {est_name!r}; valid choices: {list(ESTIMATORS)}")
+    if est_name is not None:
+        estimator_spec(est_name)  # an unknown name is refused before anything starts
     _check_arguments(
         render_mode=render_mode,
         record_dir=record_dir,
@@ -205,7 +196,11 @@ def make_roll_env(
         gui=render_mode == "human",
         spawn_radius=spawn_radius,
     )
-    est = make_estimator(estimator, backend)
+    try:
+        est = make_estimator(estimator, backend)
+    except BaseException:
+        backend.close()
+        raise
     if hasattr(backend, "camera"):  # the simulator renders frames only when they are used
         backend.camera = est.needs_camera
     if record_dir is not None:

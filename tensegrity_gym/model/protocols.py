@@ -23,6 +23,7 @@ __all__ = [
     "SensorCalibration",
     "StepResult",
     "backend_can_wait",
+    "backend_sample_kinds",
 ]
 
 
@@ -143,3 +144,14 @@ def backend_can_wait(backend: object) -> bool:
     except (AttributeError, TypeError, ValueError):
         return False
     return "ready" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
+
+
+def backend_sample_kinds(backend: object) -> frozenset[str] | None:
+    """The sample kinds (and ``"ground_truth"``) a backend provides, from its optional
+    ``sample_kinds()``; None where it does not say or cannot know yet (a robot before it
+    is reached)."""
+    method = getattr(backend, "sample_kinds", None)
+    if method is None:
+        return None
+    kinds = method()
+    return None if kinds is None else frozenset(kinds)

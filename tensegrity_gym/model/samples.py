@@ -16,6 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "GROUND_TRUTH",
+    "SAMPLE_KINDS",
     "AhrsSample",
     "CableLengthSample",
     "ContactSample",
@@ -128,6 +130,21 @@ Sample: TypeAlias = (
     | RgbdFrame
     | ContactSample
 )
+
+SAMPLE_KINDS: dict[str, type] = {
+    "imu": ImuSample,
+    "ahrs": AhrsSample,
+    "encoders": EncoderSample,
+    "cable_lengths": CableLengthSample,
+    "uwb": UwbRangeSample,
+    "rgbd": RgbdFrame,
+    "contacts": ContactSample,
+}
+"""The name of each kind of sample, as estimators declare what they need."""
+
+GROUND_TRUTH = "ground_truth"
+"""Not a sample kind: the requirement of an estimator that reads the true state (the
+simulator's, or motion capture's)."""
 
 
 @dataclass(frozen=True, slots=True)

@@ -11,7 +11,7 @@ import numpy as np
 from tensegrity_gym.model.kinematics import center_of_mass
 from tensegrity_gym.model.lie import quat_multiply
 from tensegrity_gym.model.protocols import SensorCalibration, StepResult
-from tensegrity_gym.model.samples import GroundTruth
+from tensegrity_gym.model.samples import GROUND_TRUTH, SAMPLE_KINDS, GroundTruth
 from tensegrity_gym.sim.sensors import (
     CableLengthModel,
     CameraModel,
@@ -304,6 +304,10 @@ class SimBackend:
         for sched in self._schedules.values():
             sched.due(0.0)  # the t = 0 samples are taken below
         return StepResult(self._sample({name: [snap] for name in self._schedules}, rng))
+
+    def sample_kinds(self) -> frozenset[str]:
+        """Every kind of sample (frames rendered when an estimator asks) and the truth."""
+        return frozenset([*SAMPLE_KINDS, GROUND_TRUTH])
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
         if self._rng is None:
