@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tensegrity_gym.model.kinematics import quaternion_rotate
+from tensegrity_gym.model.lie import quat_rotate
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -213,4 +213,4 @@ class MeasurementModel:
 
 def ahrs_axis(quaternion: NDArray[np.float64]) -> NDArray[np.float64]:
     """A rod's axis in the world (its body z axis) from its AHRS quaternion (x, y, z, w)."""
-    return quaternion_rotate(np.asarray(quaternion, dtype=np.float64), np.array([0.0, 0.0, 1.0]))
+    return quat_rotate(np.asarray(quaternion, dtype=np.float64), np.array([0.0, 0.0, 1.0]))

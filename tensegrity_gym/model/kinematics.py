@@ -9,15 +9,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tensegrity_gym.model.lie import quat_rotate as quaternion_rotate
-
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
 __all__ = [
     "center_of_mass",
     "member_lengths",
-    "quaternion_rotate",
     "rod_axes",
     "rod_centres",
     "rod_quaternion_from_axis",
