@@ -272,6 +272,7 @@ def _estimate_one(
         "recovered_bag": backend.reader.recovered,
         "skipped_messages": dict(backend.reader.skipped),
         "lost_spans": [span.as_dict() for span in backend.reader.lost_spans],
+        "out_of_range": dict(backend.out_of_range),
         "reinitialisations": int(sum(e.reinitialised for e in estimates)),
         "finite": bool(finite.all()),
     }

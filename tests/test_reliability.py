@@ -346,3 +346,27 @@ def test_the_oracle_without_ground_truth_says_so_and_survives_a_dropped_frame() 
     backend.close()
     assert not held.healthy
     np.testing.assert_array_equal(held.com, first.com)
+
+
+def test_commands_outside_the_motor_range_in_a_bag_are_counted(tmp_path: Path) -> None:
+    from tests.test_bag_robustness import _edit_every, _rewrite
+
+    env = gym.make(ENV_ID, estimator="oracle", record_dir=tmp_path / "runs", max_episode_steps=4)
+    env.reset(seed=0)
+    for _ in range(4):
+        env.step(env.action_space.sample())
+    env.close()
+
+    def stretch(msg: Any) -> None:
+        position = np.array(msg.position)
+        position[0] = 5.0  # m: far beyond the motor's 0.24 m
+        msg.position = position
+
+    bag = _rewrite(tmp_path / "runs" / "episode_000", tmp_path / "wild",
+                   _edit_every("/commands/rest_length_targets", stretch))  # fmt: skip
+    replay = gym.make(ENV_ID, estimator="oracle", driver=f"bag:{bag}")
+    _, info = replay.reset(seed=0)
+    assert info["bag_out_of_range"] == {}
+    counts = [replay.step(replay.action_space.sample())[4]["bag_out_of_range"] for _ in range(4)]
+    replay.close()
+    assert counts[-1] == {"command": 4}, counts

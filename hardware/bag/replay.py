@@ -18,7 +18,7 @@ import numpy as np
 from hardware.bag.messages import sample_kinds_of_topics
 from hardware.bag.reader import BagReader
 from tensegrity_gym.model.protocols import StepResult
-from tensegrity_gym.model.samples import RgbdFrame
+from tensegrity_gym.model.samples import EncoderSample, RgbdFrame
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -61,6 +61,9 @@ class ReplayBackend:
         self._frame: RgbdFrame | None = None
         self._warned = False
         self.steps_taken = 0
+        self.out_of_range: dict[str, int] = {}
+        """Recorded commands and encoder readings outside the motors' range, counted
+        (they are played as recorded: the robot did get or report them)."""
 
     @property
     def calibration(self) -> SensorCalibration:
@@ -82,15 +85,29 @@ class ReplayBackend:
 
     def _saw(self, period: BagPeriod) -> None:
         self._truth = period.truth  # None for a period without ground truth: none is known
+        if period.command is not None:
+            self._count_out_of_range("command", period.command)
         for s in period.samples:
             if isinstance(s, RgbdFrame):
                 self._frame = s
+            elif isinstance(s, EncoderSample):
+                self._count_out_of_range("encoder", s.rest_lengths)
+
+    def _count_out_of_range(self, what: str, rest_lengths: NDArray[np.float64]) -> None:
+        lo, hi, _ = self.description.motor_limits
+        tolerance = self.description.sensors.encoder.resolution  # one quantisation step
+        outside = int(
+            np.count_nonzero((rest_lengths < lo - tolerance) | (rest_lengths > hi + tolerance))
+        )
+        if outside:
+            self.out_of_range[what] = self.out_of_range.get(what, 0) + outside
 
     def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
         """Start again from the beginning of the bag (``rng`` is not used)."""
         self._periods = self.reader.periods()
         self._truth = self._frame = None
         self.steps_taken = 0
+        self.out_of_range = {}
         start = self._advance()
         assert start is not None  # periods() always yields the start period
         self._saw(start)
@@ -100,11 +117,13 @@ class ReplayBackend:
     def _info(self, period: BagPeriod) -> dict[str, Any]:
         """``bag_time`` (s): the period's end; ``bag_skipped``: the reader's skip counts
         so far; ``bag_lost``: damaged chunks within the period (their messages are
-        simply missing), as :meth:`LostSpan.as_dict`."""
+        simply missing), as :meth:`LostSpan.as_dict`; ``bag_out_of_range``: commanded and
+        measured rest lengths outside the motors' range so far, by kind."""
         return {
             "bag_time": period.t_end,
             "bag_skipped": dict(self.reader.skipped),
             "bag_lost": [span.as_dict() for span in period.lost],
+            "bag_out_of_range": dict(self.out_of_range),
         }
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
