@@ -8,13 +8,15 @@ late and duplicated ones dropped, and each kind counted in ``info``. Zenoh deliv
 its own threads; the callback only queues the bytes, and all decoding happens in
 ``step``, so a flood of messages cannot interleave with the env's state.
 
-Nothing waits forever: connecting, the robot's header (calibration) and the first
-samples each have a timeout; a period in which the robot stays quiet returns on time
-with ``info["link_stalled"]``, and a robot quiet for ``timeouts.link_lost`` makes
-``step`` send a stop command and raise :class:`LinkError`. ``close()``, an exception in
-the env, or the interpreter exiting send a stop command (hold the present rest lengths)
-first. A heartbeat goes out at a fixed rate from its own thread; the robot holds its
-motors when heartbeats stop.
+Nothing waits forever: connecting, the robot's header (calibration), the first
+samples and what the estimator needs to initialise each have a timeout; a period in
+which the robot stays quiet returns on time with ``info["link_stalled"]``, and a robot
+quiet for ``timeouts.link_lost`` makes ``step`` send a stop command and raise
+:class:`LinkError`. Silence is judged after draining, over the time the driver
+listened: a process that was suspended does not blame the robot for the gap.
+``close()``, an exception in the env, or the interpreter exiting send a stop command
+(hold the present rest lengths) first. A heartbeat goes out at a fixed rate from its
+own thread; the robot holds its motors when heartbeats stop.
 """
 
 from __future__ import annotations
