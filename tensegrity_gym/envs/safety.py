@@ -36,24 +36,30 @@ class StopOnError(gym.Wrapper[Any, Any, Any, Any], gym.utils.RecordConstructorAr
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[Any, dict[str, Any]]:
+        sent = self._stops_sent()
         try:
             return self.env.reset(seed=seed, options=options)
         except BaseException:
-            self._stop()
+            self._stop(sent)
             self._rearm_checkers()
             raise
 
     def step(self, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
+        sent = self._stops_sent()
         try:
             return self.env.step(action)
         except BaseException:
-            self._stop()
+            self._stop(sent)
             raise
 
-    def _stop(self) -> None:
+    def _stops_sent(self) -> int:
+        return int(getattr(self.env.unwrapped, "stops_sent", 0))
+
+    def _stop(self, sent_before: int) -> None:
+        """Stop, unless the env itself already did for this exception."""
         env: TensegrityEnv = self.env.unwrapped  # type: ignore[assignment]
         stop = getattr(env, "stop_backend", None)
-        if stop is not None:
+        if stop is not None and self._stops_sent() == sent_before:
             stop()
 
     def _rearm_checkers(self) -> None:
