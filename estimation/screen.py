@@ -4,7 +4,8 @@
 :mod:`estimation.plausibility`), counts what it drops by kind, and follows each sensor
 stream with a :class:`StreamMonitor`: a stream that has given nothing plausible for a
 while is failed, and nothing of it is passed on, plausible or not, until it has given
-only plausible samples for as long again. Time is the samples' own (s).
+only plausible samples for as long again. Time is the samples' own (s), compared in
+integer nanoseconds so that the verdicts do not depend on where the clock started.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from tensegrity_gym.model.samples import (
     EncoderSample,
     ImuSample,
     UwbRangeSample,
+    seconds_to_ns,
 )
 
 if TYPE_CHECKING:
@@ -43,9 +45,10 @@ class StreamMonitor:
 
     def __init__(self, window: float) -> None:
         self.window = float(window)
+        self._window_ns = seconds_to_ns(self.window)
         self._failed: set[str] = set()
-        self._since: dict[str, float] = {}
-        """Per stream, the time of the first sample of the current run that disagrees."""
+        self._since: dict[str, int] = {}
+        """Per stream, the time (ns) of the first sample of the current run that disagrees."""
 
     def observe(self, stream: str, t: float, plausible: bool) -> bool:
         """Record one sample of ``stream`` at ``t`` (s); True if the stream is in use."""
@@ -53,8 +56,9 @@ class StreamMonitor:
         if plausible != failed:
             self._since.pop(stream, None)
             return not failed
-        start = self._since.setdefault(stream, t)
-        if t - start >= self.window:
+        t_ns = seconds_to_ns(t)
+        start = self._since.setdefault(stream, t_ns)
+        if t_ns - start >= self._window_ns:
             del self._since[stream]
             if failed:
                 self._failed.discard(stream)

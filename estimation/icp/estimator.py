@@ -7,11 +7,17 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from estimation.health import EstimatorHealth, HealthParams
 from estimation.icp.tracker import IcpParams, IcpTracker
 from estimation.oracle import latest_rest_lengths
 from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.kinematics import center_of_mass
-from tensegrity_gym.model.samples import CableLengthSample, RgbdFrame
+from tensegrity_gym.model.samples import (
+    CableLengthSample,
+    RgbdFrame,
+    ns_to_seconds,
+    seconds_to_ns,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -24,6 +30,9 @@ if TYPE_CHECKING:
 
 __all__ = ["IcpEstimator"]
 
+HEALTH = HealthParams(max_prediction_time=0.0, healthy_when_reinitialised=True)
+"""Every update must track a frame; one that re-initialised from a fresh frame has."""
+
 
 class IcpEstimator:
     """Rod poses from the RGB-D camera and cable lengths (papers/003).
@@ -31,7 +40,8 @@ class IcpEstimator:
     Node velocities are finite differences between frames. A period without a usable
     frame (none, no depth, no colour) keeps the last estimate and reports unhealthy; a
     lost track re-initialises from colour segmentation at the next frame that allows it,
-    and says so (``reinitialised``).
+    and says so (``reinitialised``). :attr:`health` counts the losses by cause
+    (``"fitness"``, ``"jump"``, ...: :attr:`TrackResult.cause`).
     """
 
     needs_camera = True
@@ -42,30 +52,36 @@ class IcpEstimator:
         self._rng: np.random.Generator | None = None
         self._nodes: NDArray[np.float64] | None = None
         self._velocities: NDArray[np.float64] | None = None
-        self._t = 0.0
+        self._t_ns = 0
+        """When the last frame was tracked (ns)."""
         self._rest = np.zeros(0)
         self._cables: NDArray[np.float64] | None = None
         self._need_init = True
-        self.reinitialisations = 0
+        self.health = EstimatorHealth(HEALTH)
 
-    def _estimate(self, healthy: bool, reinitialised: bool = False) -> Estimate:
+    @property
+    def reinitialisations(self) -> int:
+        """Tracks lost since the reset (each asks for a re-initialisation)."""
+        return self.health.reinitialisations
+
+    def _estimate(self, tracked: bool) -> Estimate:
         assert self.tracker is not None and self._nodes is not None
         d = self.tracker.description
         v = self._velocities if self._velocities is not None else np.zeros_like(self._nodes)
-        return Estimate(
-            t=self._t,
+        self.health.predicted(0, corrected=tracked)
+        estimate = Estimate(
+            t=ns_to_seconds(self._t_ns),
             node_positions=self._nodes.copy(),
             node_velocities=v.copy(),
             com=center_of_mass(self._nodes, d.node_masses),
             rest_lengths=self._rest.copy(),
-            healthy=healthy,
-            reinitialised=reinitialised,
             rod_quaternions=(
                 Rotation.from_matrix(self.tracker.rotations).as_quat()
                 if self.tracker.nodes is not None
                 else None
             ),
         )
+        return self.health.fill(estimate)
 
     def reset(
         self,
@@ -82,9 +98,9 @@ class IcpEstimator:
         self._nodes = description.initial_positions.copy()
         self._velocities = None
         self._need_init = True
-        self.reinitialisations = 0
-        healthy = self._consume(samples)
-        return self._estimate(healthy)
+        self._t_ns = 0
+        self.health = EstimatorHealth(HEALTH)
+        return self._estimate(self._consume(samples))
 
     def _consume(self, samples: Sequence[Sample]) -> bool:
         """Take the period's samples; True if a frame was tracked (or initialised)."""
@@ -101,29 +117,29 @@ class IcpEstimator:
         assert self.tracker is not None and self._rng is not None and self._nodes is not None
         if not np.any(frame.depth > 0):
             return False
-        before, t_before = self._nodes.copy(), self._t
+        before, t_ns = self._nodes.copy(), seconds_to_ns(frame.t)
         if self._need_init:
             if not self.tracker.initialise(frame, self._cables, self._rng):
                 return False
             self._need_init = False
+            if self.health.pending is not None:
+                self.health.reinitialised(placed=True)
             assert self.tracker.nodes is not None
-            self._nodes, self._t, self._velocities = self.tracker.nodes.copy(), frame.t, None
+            self._nodes, self._t_ns, self._velocities = self.tracker.nodes.copy(), t_ns, None
             return True
         result = self.tracker.track(frame, self._cables, self._rng)
         if result.lost:
             self._need_init = True
-            self.reinitialisations += 1
+            self.health.request_reinitialisation(result.cause)
             return False
         self._nodes = result.nodes.copy()
-        dt = frame.t - t_before
+        dt = ns_to_seconds(t_ns - self._t_ns)
         self._velocities = (self._nodes - before) / dt if dt > 0 else None
-        self._t = frame.t
+        self._t_ns = t_ns
         return True
 
     def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
         if self.tracker is None:
             raise RuntimeError("call reset() before update()")
         self._rest = latest_rest_lengths(samples, self._rest)
-        was_lost = self._need_init and self.reinitialisations > 0
-        healthy = self._consume(samples)
-        return self._estimate(healthy, reinitialised=was_lost and healthy)
+        return self._estimate(self._consume(samples))

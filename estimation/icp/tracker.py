@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from estimation.icp.observation import back_project, endcap_masks, fit_ground_plane, rod_hues
 from tensegrity_gym.model.kinematics import weighted_kabsch
+from tensegrity_gym.model.samples import ns_to_seconds, seconds_to_ns
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -95,6 +96,10 @@ class TrackResult:
     """Per endcap, the share of its visible model points that found a match, (n,)."""
     lost: bool
     reason: str = ""
+    """Why the track was lost, with the figures ("fitness 0.21 below 0.3")."""
+    cause: str = ""
+    """Why the track was lost, as a key to count by: ``"non-finite"``, ``"fitness"``,
+    ``"jump"`` or ``"cables"``; empty while tracked."""
 
 
 def _sphere_points(n: int) -> NDArray[np.float64]:
@@ -163,7 +168,8 @@ class IcpTracker:
         little as possible from frame to frame (section 4.2)."""
         self._set_ground(np.array([0.0, 0.0, 1.0]), 0.0)
         self._dummies: list[tuple[NDArray[np.float64], NDArray[np.float64]]] = []
-        self._t: float | None = None
+        self._t_ns: int | None = None
+        """When the last frame was tracked (ns)."""
 
     # ------------------------------------------------------------------ observation
 
@@ -213,9 +219,9 @@ class IcpTracker:
         axes = nodes[self.rod_nodes[:, 1]] - nodes[self.rod_nodes[:, 0]]
         self.rotations = np.array([self._rod_frame(np.zeros(3), a)[0] for a in axes])
         self._dummies = [(np.zeros((0, 3)), np.zeros((0, 3))) for _ in self.rod_nodes]
-        self._t = None  # the refinement below is not a motion: no jump test
+        self._t_ns = None  # the refinement below is not a motion: no jump test
         self.track(frame, cable_lengths, rng)
-        self._t = frame.t
+        self._t_ns = seconds_to_ns(frame.t)
         return True
 
     def _set_ground(self, normal: Vec, offset: float) -> None:
@@ -307,28 +313,40 @@ class IcpTracker:
         if p.correction and not p.interleaved and not p.rigid_shape:
             nodes = self._correct(nodes, previous, ratio, cable_lengths)
         nodes = self._keep_ends(nodes, previous)
-        dt = max(frame.t - self._t, 1e-3) if self._t is not None else 1.0
-        jump = float(np.linalg.norm(nodes - previous, axis=1).max())
-        fitness = float(ratio.mean())
-        lost, reason = False, ""
-        if not np.all(np.isfinite(nodes)):
-            lost, reason = True, "non-finite endcap positions"
-        elif fitness < p.min_fitness:
-            lost, reason = True, f"fitness {fitness:.3f} below {p.min_fitness}"
-        elif jump > p.max_speed * dt:
-            lost, reason = True, f"an endcap jumped {jump:.2f} m in {dt:.2f} s"
-        elif (
-            cable_lengths is not None
-            and (residual := self._cable_residual(nodes, cable_lengths)) > p.max_cable_residual
-        ):
-            lost, reason = True, f"endcap distances disagree with the cables by {residual:.3f} m"
-
-        if not lost:
+        t_ns = seconds_to_ns(frame.t)
+        dt = max(ns_to_seconds(t_ns - self._t_ns), 1e-3) if self._t_ns is not None else 1.0
+        cause, reason = self._loss(nodes, previous, float(ratio.mean()), dt, cable_lengths)
+        if not cause:
             self.nodes = nodes
             self._dummies = matches
             self._turn_rotations(nodes)
-            self._t = frame.t
-        return TrackResult(nodes if not lost else previous, ratio, lost, reason)
+            self._t_ns = t_ns
+        lost = bool(cause)
+        return TrackResult(nodes if not lost else previous, ratio, lost, reason, cause)
+
+    def _loss(
+        self,
+        nodes: Vec,
+        previous: Vec,
+        fitness: float,
+        dt: float,
+        cable_lengths: NDArray[np.float64] | None,
+    ) -> tuple[str, str]:
+        """Why a frame's endcaps (n, 3) (m), ``dt`` seconds after ``previous``, lose the
+        track: (:attr:`TrackResult.cause`, :attr:`TrackResult.reason`), empty if tracked."""
+        p = self.params
+        jump = float(np.linalg.norm(nodes - previous, axis=1).max())
+        if not np.all(np.isfinite(nodes)):
+            return "non-finite", "non-finite endcap positions"
+        if fitness < p.min_fitness:
+            return "fitness", f"fitness {fitness:.3f} below {p.min_fitness}"
+        if jump > p.max_speed * dt:
+            return "jump", f"an endcap jumped {jump:.2f} m in {dt:.2f} s"
+        if cable_lengths is not None:
+            residual = self._cable_residual(nodes, cable_lengths)
+            if residual > p.max_cable_residual:
+                return "cables", f"endcap distances disagree with the cables by {residual:.3f} m"
+        return "", ""
 
     def _turn_rotations(self, nodes: Vec) -> None:
         """Each rod's new orientation: the previous one turned by the smallest rotation

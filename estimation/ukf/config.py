@@ -1,0 +1,124 @@
+"""Everything that tunes the UKF: :class:`UkfConfig`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from estimation.health import HealthParams
+from estimation.ukf.sigma_points import SigmaPointParams
+from estimation.ukf.spring_mass import SpringMassParams
+
+__all__ = ["UkfConfig"]
+
+
+@dataclass(frozen=True)
+class UkfConfig:
+    """Everything that tunes the filter. Lengths scale with the robot where noted.
+
+    Noise is given as standard deviations; the filter squares them.
+    """
+
+    sigma_points: SigmaPointParams = field(default_factory=SigmaPointParams)
+    model: SpringMassParams = field(default_factory=SpringMassParams)
+    position_noise: float = 0.01
+    """Process noise on node positions: std per sqrt(s), in rod lengths."""
+    velocity_noise: float = 0.5
+    """Process noise on node velocities: std per sqrt(s), in rod lengths per s."""
+    axis_sigma: float = 0.04
+    """Std of each component of an AHRS rod axis (unit vector, ~ rad)."""
+    range_sigma: float = 0.03
+    """Std of a UWB range (m)."""
+    cable_sigma: float = 0.03
+    """Std of a cable-length sensor (m); slack cables read long, the gate drops them."""
+    rod_length_sigma: float = 0.002
+    """Std of the rod-length pseudo-measurement, in rod lengths."""
+    contact_sigma: float = 0.005
+    """Std of the height of an endcap in contact with the ground (m)."""
+    use_imu: bool = True
+    use_ranges: bool = True
+    use_robot_ranges: bool = True
+    """Node-node ranges as well as node-anchor ones."""
+    use_cable_lengths: bool = True
+    use_contacts: bool = True
+    anchors: tuple[int, ...] | None = None
+    """Indices of the anchors to use (ablations: 4 of 8); None uses all."""
+    constant_offset: bool = False
+    """One offset (the mean of the calibration's) for every pair instead of o_ij."""
+    gate_probability: float | None = 0.9999
+    """Chi-square gate on each measurement group; None turns gating off."""
+    gate_after: int = 10
+    """Updates after (re)initialisation before the gate applies."""
+    initial_position_sigma: float = 0.1
+    """Std of the initial position of the robot as a whole, in rod lengths."""
+    initial_shape_sigma: float = 0.02
+    """Std of each node's initial position about that, in rod lengths."""
+    initial_velocity_sigma: float = 0.05
+    """Std of the initial node velocities (m/s), in rod lengths per s."""
+    initial_positions: tuple[tuple[float, float, float], ...] | None = None
+    """Start from these node positions (m) instead of fitting them to the first samples."""
+    range_window: float = 0.5
+    """Seconds of ranges kept for re-initialisation."""
+    divergence_nis: float = 25.0
+    """Mean NIS per accepted row over ``divergence_window`` updates that counts as
+    divergence."""
+    divergence_window: int = 5
+    lockout_range_share: float = 0.3
+    """Gating out more than this share of the ranges, or a rod's axis, ..."""
+    lockout_updates: int = 3
+    """... in this many updates in a row is a gate lock-out: the covariance is reset to
+    its initial size around the current state; a second lock-out soon after counts as
+    divergence."""
+    divergence_anchor_reject_share: float = 0.6
+    """Gating out more than this share of the anchor ranges of one update (at least 5)
+    counts as divergence at once: the estimate has jumped away from where the anchors
+    put the robot."""
+    divergence_rod_strain: float = 0.25
+    """A rod estimated this much longer or shorter (share of its length) is divergence."""
+    stream_failure_window: float = 1.0
+    """Seconds of nothing but physically implausible samples after which a sensor stream
+    is failed (``Estimate.failed_streams``) and not used, plausible or not, until it has
+    given only plausible samples this long again. One second is 15 UWB rounds, 10 cable
+    readings, 200 AHRS readings: no single garbled message fails a stream, a dead one is
+    dropped within a second, and a flickering one is not taken back at its first good
+    value."""
+    max_prediction_time: float = 0.5
+    """Seconds the filter may predict without fusing any sensor row (AHRS axis, range,
+    cable, contact; the rod-length pseudo-measurement does not count) before its estimate
+    is reported unhealthy: five control periods of the envs, in which a rolling 3-bar
+    moves some 5 cm on its model alone. Updates without any sample count as long as the
+    last update that had some."""
+
+    def __post_init__(self) -> None:
+        positive = (
+            "position_noise", "velocity_noise", "axis_sigma", "range_sigma", "cable_sigma",
+            "rod_length_sigma", "contact_sigma", "initial_position_sigma", "initial_shape_sigma",
+            "initial_velocity_sigma", "range_window", "divergence_nis",
+            "divergence_rod_strain", "stream_failure_window", "max_prediction_time",
+        )  # fmt: skip
+        for name in positive:
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value > 0):
+                raise ValueError(f"UkfConfig.{name} must be positive, got {value}")
+        if self.gate_probability is not None and not 0.5 < self.gate_probability < 1:
+            raise ValueError(
+                f"UkfConfig.gate_probability must lie in (0.5, 1) or be None, "
+                f"got {self.gate_probability}"
+            )
+        if self.divergence_window < 1 or self.lockout_updates < 1:
+            raise ValueError("UkfConfig.divergence_window and lockout_updates must be at least 1")
+        if not 0 < self.divergence_anchor_reject_share < 1:
+            raise ValueError(
+                "UkfConfig.divergence_anchor_reject_share must lie in (0, 1), "
+                f"got {self.divergence_anchor_reject_share}"
+            )
+        if not 0 < self.lockout_range_share < 1:
+            raise ValueError(
+                f"UkfConfig.lockout_range_share must lie in (0, 1), got {self.lockout_range_share}"
+            )
+
+    @property
+    def health(self) -> HealthParams:
+        """When the filter's estimate is healthy."""
+        return HealthParams(max_prediction_time=self.max_prediction_time)
