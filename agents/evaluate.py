@@ -30,6 +30,7 @@ if TYPE_CHECKING:
 
     from tensegrity_gym.envs.roll_env import TensegrityEnv
     from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.tasks.roll import RollTask
 
 __all__ = [
     "CONDITIONS",
@@ -222,7 +223,8 @@ def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> E
     inner = cast("TensegrityEnv", env.unwrapped)
     d = inner.backend.description
     obs, info = env.reset(seed=seed)
-    goal = inner.task.direction.copy()  # the goal heading drawn (or fixed) at reset
+    # A rolling id's task: the goal heading drawn (or fixed) at reset.
+    goal = cast("RollTask", inner.task).direction.copy()
     true_path, est_path, node_z = [info["com_true"]], [info["com_estimate"]], []
     truth = inner.backend.ground_truth()
     assert truth is not None

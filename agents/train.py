@@ -1,10 +1,11 @@
 """Training rolling policies with stable-baselines3, the estimator in the loop.
 
 Hyperparameters come from ``agents/configs/<algo>.yml`` (rl-zoo3's layout: one mapping
-per env id). Each worker builds its own env, UKF included, from the env id; nothing
-with a simulator or filter in it is pickled. The run folder gets the final model and its
-normalisation statistics, checkpoints, Monitor logs, TensorBoard logs, and the exact
-configuration it ran with (``config.yaml``).
+per env id; an id of another task without an entry of its own, say ``ThreeBarGoTo-v0``,
+takes its robot's rolling entry, ``ThreeBarRoll-v0``). Each worker builds its own env,
+UKF included, from the env id; nothing with a simulator or filter in it is pickled. The
+run folder gets the final model and its normalisation statistics, checkpoints, Monitor
+logs, TensorBoard logs, and the exact configuration it ran with (``config.yaml``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import yaml
 from tensegrity_gym.model.registry import estimator_spec
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import Collection, Sequence
 
     from stable_baselines3.common.base_class import BaseAlgorithm
     from stable_baselines3.common.callbacks import BaseCallback
@@ -32,6 +33,7 @@ __all__ = [
     "ALGORITHMS",
     "CONFIG_DIR",
     "TrainConfig",
+    "config_entry",
     "load_hyperparams",
     "make_training_env",
     "parse_config_value",
@@ -94,19 +96,43 @@ def parse_config_value(text: str, where: str) -> Any:
     return convert(tree.body)
 
 
+def config_entry(entries: Collection[str], env_id: str) -> str | None:
+    """The config entry that holds ``env_id``'s hyperparameters: its own, else (for an id
+    of another task) that of the same robot's rolling id through the same driver; None
+    if neither is written."""
+    if env_id in entries:
+        return env_id
+    import gymnasium as gym
+
+    import tensegrity_gym  # noqa: F401  (registers the ids)
+
+    if env_id not in gym.registry:
+        return None
+    own = gym.spec(env_id).kwargs
+    rolling = {**own, "task": "roll"}
+    for entry in sorted(entries):
+        if entry in gym.registry and gym.spec(entry).kwargs == rolling:
+            log.info("no %s entry in the config: %s's hyperparameters are used", env_id, entry)
+            return entry
+    return None
+
+
 def load_hyperparams(algo: str, env_id: str, config_file: Path | None = None) -> dict[str, Any]:
-    """The checked hyperparameters of ``env_id`` for ``algo``; unknown keys fail at once
-    with the list of valid ones."""
+    """The checked hyperparameters of ``env_id`` for ``algo`` (see :func:`config_entry`);
+    unknown keys fail at once with the list of valid ones."""
     cls = _algorithm_class(algo)
     path = config_file or CONFIG_DIR / f"{algo}.yml"
     try:
         doc = yaml.safe_load(path.read_text())
     except (OSError, yaml.YAMLError) as err:
         raise ValueError(f"cannot read the config {path}: {err}") from None
-    if not isinstance(doc, dict) or env_id not in doc:
+    entry = config_entry(doc, env_id) if isinstance(doc, dict) else None
+    if entry is None:
         ids = sorted(doc) if isinstance(doc, dict) else []
-        raise ValueError(f"{path}: no entry for {env_id!r}; entries: {ids}")
-    params = dict(doc[env_id])
+        raise ValueError(
+            f"{path}: no entry for {env_id!r} (nor its robot's Roll id); entries: {ids}"
+        )
+    params = dict(doc[entry])
     valid = _RUN_KEYS | (set(inspect.signature(cls.__init__).parameters) - _OWN_ARGS)
     unknown = sorted(set(params) - valid)
     if unknown:

@@ -1,53 +1,92 @@
 """Gymnasium environments for tensegrity robots whose policies see estimated states.
 
 Importing the package only registers the env ids; nothing heavy is imported.
+
+The ids come from a loop over the robot presets and the tasks: for each preset YAML in
+``tensegrity_gym/model/assets`` (its ``display_name``, say ``ThreeBar``) and each task
+(``Roll``, ``GoTo``), ``tensegrity_gym/ThreeBarRoll-v0``; and where the preset says
+``hardware: true``, ``tensegrity_gym/ThreeBarRollHardware-v0`` through the robot link.
+Adding a robot is adding its YAML file.
 """
 
+from __future__ import annotations
+
+from importlib import resources
+from typing import Any
+
+import yaml
 from gymnasium.envs.registration import WrapperSpec, register
 
 __version__ = "0.1.0"
 
-_ENTRY = "tensegrity_gym.envs.factory:make_roll_env"
+_ENTRY = "tensegrity_gym.envs.factory:make_env"
 # Outermost: whatever fails in the stack gym.make builds, the motors stop.
 _SAFETY = (WrapperSpec("StopOnError", "tensegrity_gym.envs.safety:StopOnError", {}),)
+# The robot (or the emulator, ``tensegrity-gym emulate``) on the network; pass
+# driver="zenoh/tcp/HOST:PORT" to reach another.
+_HARDWARE_DRIVER = "zenoh/tcp/127.0.0.1:7447"
 
-register(
-    id="tensegrity_gym/ThreeBarRoll-v0",
-    entry_point=_ENTRY,
-    max_episode_steps=300,
-    additional_wrappers=_SAFETY,
-    kwargs={"robot": "three_bar"},
-)
-register(
-    id="tensegrity_gym/ThreeBarLargeRoll-v0",
-    entry_point=_ENTRY,
-    max_episode_steps=300,
-    additional_wrappers=_SAFETY,
-    kwargs={"robot": "three_bar_large"},
-)
-register(
-    id="tensegrity_gym/SuperBallRoll-v0",
-    entry_point=_ENTRY,
-    max_episode_steps=300,
-    additional_wrappers=_SAFETY,
-    kwargs={"robot": "superball"},
-)
+TASK_IDS: dict[str, tuple[str, int]] = {"roll": ("Roll", 300), "goto": ("GoTo", 600)}
+"""Registered task name (``tensegrity_gym.model.registry.TASKS``) -> (its word in the
+env ids, episode steps). A GoTo episode is 60 s: a goal is drawn 2-4 rod lengths away,
+and at the scripted gait's pace (about 0.01 rod lengths a step on the 3-bar robot) the
+mean distance takes 300 steps in a straight line, before any turning."""
 
-# The same robots through the hardware driver: the real robot, or the emulator
-# (``tensegrity-gym emulate``), on the network. Pass driver="zenoh/tcp/HOST:PORT".
-register(
-    id="tensegrity_gym/ThreeBarRollHardware-v0",
-    entry_point=_ENTRY,
-    max_episode_steps=300,
-    additional_wrappers=_SAFETY,
-    nondeterministic=True,
-    kwargs={"robot": "three_bar", "driver": "zenoh/tcp/127.0.0.1:7447"},
-)
-register(
-    id="tensegrity_gym/SuperBallRollHardware-v0",
-    entry_point=_ENTRY,
-    max_episode_steps=300,
-    additional_wrappers=_SAFETY,
-    nondeterministic=True,
-    kwargs={"robot": "superball", "driver": "zenoh/tcp/127.0.0.1:7447"},
-)
+_HEADER = frozenset({"name", "display_name", "hardware"})
+
+
+def _header(text: str) -> dict[str, Any]:
+    """The top-level scalars ``name``, ``display_name`` and ``hardware`` of a preset's
+    YAML. YAML events are read only until all three are seen (the generated files
+    start with them), so that importing the package does not parse the robots."""
+    found: dict[str, Any] = {}
+    depth, key = 0, None
+    for event in yaml.parse(text, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader)):
+        if isinstance(event, (yaml.MappingStartEvent, yaml.SequenceStartEvent)):
+            depth, key = depth + 1, None
+        elif isinstance(event, (yaml.MappingEndEvent, yaml.SequenceEndEvent)):
+            depth -= 1
+        elif depth == 1 and isinstance(event, yaml.ScalarEvent):
+            if key is None:
+                key = event.value
+                continue
+            if key in _HEADER:
+                plain = event.implicit[0]
+                found[key] = yaml.safe_load(event.value) if plain else event.value
+                if found.keys() >= _HEADER:
+                    break
+            key = None
+    return found
+
+
+def preset_ids() -> dict[str, dict[str, Any]]:
+    """Every registered id -> its ``gym.make`` kwargs (``robot``, ``task`` and, for a
+    robot on the link, ``driver``), from the preset files and :data:`TASK_IDS`."""
+    ids: dict[str, dict[str, Any]] = {}
+    for asset in sorted((resources.files(__name__) / "model" / "assets").iterdir(),
+                        key=lambda f: f.name):  # fmt: skip
+        if not asset.name.endswith(".yaml"):
+            continue
+        head = _header(asset.read_text(encoding="utf-8"))
+        robot = asset.name[: -len(".yaml")]
+        display = head.get("display_name") or "".join(p.capitalize() for p in robot.split("_"))
+        for task, (word, _) in TASK_IDS.items():
+            ids[f"tensegrity_gym/{display}{word}-v0"] = {"robot": robot, "task": task}
+            if head.get("hardware") is True:
+                ids[f"tensegrity_gym/{display}{word}Hardware-v0"] = {
+                    "robot": robot,
+                    "task": task,
+                    "driver": _HARDWARE_DRIVER,
+                }
+    return ids
+
+
+for _id, _kwargs in preset_ids().items():
+    register(
+        id=_id,
+        entry_point=_ENTRY,
+        max_episode_steps=TASK_IDS[_kwargs["task"]][1],
+        additional_wrappers=_SAFETY,
+        nondeterministic="driver" in _kwargs,
+        kwargs=_kwargs,
+    )

@@ -67,16 +67,17 @@ def test_observations_are_finite_float32_within_bounds(three_bar_env) -> None:
         assert np.isfinite(reward)
 
 
-def _rollout(seed: int, steps: int = 25) -> list:
-    env = gym.make("tensegrity_gym/ThreeBarRoll-v0")
+def _rollout(seed: int, steps: int = 25, env_id: str = "tensegrity_gym/ThreeBarRoll-v0") -> list:
+    env = gym.make(env_id)
     rng = np.random.default_rng(seed + 100)
     obs, info = env.reset(seed=seed)
-    record = [obs, info["com_true"]]
+    record = [obs, info["com_true"], info.get("goal")]
     for _ in range(steps):
         obs, reward, terminated, truncated, info = env.step(
             rng.uniform(-1, 1, 6).astype(np.float32)
         )
         record += [obs, reward, terminated, truncated, info["com_true"], info["com_estimate"]]
+        record += [info.get("goal")]
     env.close()
     return record
 
@@ -85,9 +86,23 @@ def _equal(a: list, b: list) -> bool:
     return all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
 
 
-def test_same_seed_same_episode_bit_for_bit() -> None:
-    assert _equal(_rollout(7), _rollout(7))
-    assert not _equal(_rollout(7), _rollout(8))
+@pytest.mark.parametrize(
+    "env_id", ["tensegrity_gym/ThreeBarRoll-v0", "tensegrity_gym/ThreeBarGoTo-v0"]
+)
+def test_same_seed_same_episode_bit_for_bit(env_id: str) -> None:
+    assert _equal(_rollout(7, env_id=env_id), _rollout(7, env_id=env_id))
+    assert not _equal(_rollout(7, env_id=env_id), _rollout(8, env_id=env_id))
+
+
+def test_goto_goal_is_drawn_from_the_seed_and_reported() -> None:
+    env = gym.make("tensegrity_gym/ThreeBarGoTo-v0", goal_range=(1.0, 1.5), success_radius=0.2)
+    goals = [env.reset(seed=seed)[1]["goal"] for seed in (3, 3, 4)]
+    np.testing.assert_array_equal(goals[0], goals[1])
+    assert not np.array_equal(goals[0], goals[2])
+    _, info = env.reset(seed=3)
+    assert 1.0 <= info["distance_to_goal"] <= 1.5 and info["goals_reached"] == 0
+    assert gym.spec("tensegrity_gym/ThreeBarGoTo-v0").max_episode_steps == 600
+    env.close()
 
 
 def test_reset_with_seed_repeats_the_episode(three_bar_env) -> None:

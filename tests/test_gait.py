@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -30,10 +32,24 @@ def test_superball_gait_goes_through_face_transitions(tmp_path) -> None:
     assert summary["estimation_error_rms"] < 0.05
 
 
-def test_gait_rejects_unknown_robot_and_bad_table() -> None:
-    env = make_roll_env("three_bar_large")
-    with pytest.raises(ValueError, match="no gait table"):
-        FaceGait(env.backend.description, env.task)
+def test_large_three_bar_gait_rolls_it_forward(tmp_path) -> None:
+    # The gait of three_bar_large.yaml (scripts/find_gait.py): 4.1 m in 300 steps, seed 0.
+    summary = run_gait("tensegrity_gym/ThreeBarLargeRoll-v0", steps=140, seed=0, out=tmp_path)
+    assert not summary["diverged"]
+    assert summary["face_changes"] >= 4
+    start, end = np.array(summary["com_start"]), np.array(summary["com_end"])
+    assert end[0] - start[0] > 1.5  # metres forward in 14 s; its rods are 1.45 m
+    assert abs(end[1] - start[1]) < 0.5 * (end[0] - start[0])  # forward, not sideways
+    assert summary["estimation_error_max"] < 0.1
+
+
+def test_gait_rejects_a_robot_without_one_and_bad_table() -> None:
+    env = make_roll_env("three_bar")
+    bare = replace(env.backend.description, gait=None)
+    with pytest.raises(ValueError, match=r"no gait table for robot 'three_bar'.*find_gait"):
+        FaceGait(bare, env.task)
+    with pytest.raises(TypeError, match="decode"):
+        FaceGait(env.backend.description, object())  # type: ignore[arg-type]
     env.close()
     env = make_roll_env("three_bar")
     with pytest.raises(ValueError, match="bad gait table entry"):

@@ -4,20 +4,19 @@ from __future__ import annotations
 
 import inspect
 import os
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from tensegrity_gym.envs.roll_env import TensegrityEnv
 from tensegrity_gym.model.checks import check_number
 from tensegrity_gym.model.description import RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
-from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec
-from tensegrity_gym.tasks.roll import RollTask
+from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
 
 if TYPE_CHECKING:
     from pathlib import Path
 
 
-__all__ = ["make_backend", "make_estimator", "make_roll_env"]
+__all__ = ["make_backend", "make_env", "make_estimator", "make_roll_env"]
 
 
 def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
@@ -141,24 +140,26 @@ def _check_arguments(
         )
 
 
-def make_roll_env(
+def make_env(
     robot: str | Path | RobotDescription = "three_bar",
+    task: str = "roll",
     *,
     estimator: str | Estimator = "ukf",
     driver: str | Backend | None = None,
     record_dir: str | Path | None = None,
     render_mode: str | None = None,
-    goal_heading: float | None = 0.0,
-    goal_distance: float | None = None,
-    ctrl_cost: float = 0.05,
     spawn_radius: float = 0.0,
     control_period: float = 0.1,
     time_step: float = 0.001,
+    **task_arguments: Any,
 ) -> TensegrityEnv:
-    """Build a rolling env.
+    """Build an env: a robot, its backend, an estimator and a task, each by name.
 
     Args:
         robot: a preset name, a YAML path or a loaded description.
+        task: a registered name (:data:`tensegrity_gym.model.registry.TASKS`): ``"roll"``
+            (:class:`~tensegrity_gym.tasks.roll.RollTask`), ``"goto"``
+            (:class:`~tensegrity_gym.tasks.goto.GoToTask`), a lab's own.
         estimator: a registered name (:data:`tensegrity_gym.model.registry.ESTIMATORS`):
             ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
             ``"icp"`` (the RGB-D tracker of papers/003; renders camera frames),
@@ -170,11 +171,14 @@ def make_roll_env(
         record_dir: write every episode to a ROS 2 bag in this folder (``episode_000``,
             ...): samples, commands, ground truth and estimates.
         render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (PyBullet's window).
-        goal_heading, goal_distance, ctrl_cost: see :class:`RollTask`.
         spawn_radius: the start position is drawn within this radius (m).
         control_period, time_step: seconds per env step and per physics step.
+        task_arguments: the task's own (``goal_heading``, ``goal_distance``,
+            ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
+            ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
     """
     description = robot if isinstance(robot, RobotDescription) else load_robot(robot)
+    spec = task_spec(task)
     est_name = estimator if isinstance(estimator, str) else None
     if est_name is not None:
         estimator_spec(est_name)  # an unknown name is refused before anything starts
@@ -186,8 +190,7 @@ def make_roll_env(
         time_step=time_step,
     )
     # The task checks its own arguments before anything is started.
-    RollTask(description, goal_heading=goal_heading, goal_distance=goal_distance,
-             ctrl_cost=ctrl_cost, control_period=control_period)  # fmt: skip
+    spec.create(description, control_period, task_arguments)
     backend = make_backend(
         description,
         driver,
@@ -212,11 +215,14 @@ def make_roll_env(
         )
         backend = RecordingBackend(backend, sink)
         est = RecordingEstimator(est, sink, backend)
-    task = RollTask(
-        description,
-        goal_heading=goal_heading,
-        goal_distance=goal_distance,
-        ctrl_cost=ctrl_cost,
-        control_period=backend.control_period,  # a replayed bag's own period
-    )
-    return TensegrityEnv(backend, est, task, render_mode=render_mode)
+    # A replayed bag's own control period.
+    made = spec.create(description, backend.control_period, task_arguments)
+    return TensegrityEnv(backend, est, made, render_mode=render_mode)
+
+
+def make_roll_env(
+    robot: str | Path | RobotDescription = "three_bar", **kwargs: Any
+) -> TensegrityEnv:
+    """The rolling env: :func:`make_env` with ``task="roll"`` (``goal_heading`` (rad),
+    ``goal_distance`` (m), ``ctrl_cost``: see :class:`~tensegrity_gym.tasks.roll.RollTask`)."""
+    return make_env(robot, "roll", **kwargs)

@@ -21,9 +21,8 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.estimate import Estimate
-    from tensegrity_gym.model.protocols import Backend, Estimator, StepResult
+    from tensegrity_gym.model.protocols import Backend, Estimator, StepResult, Task
     from tensegrity_gym.model.samples import Sample
-    from tensegrity_gym.tasks.roll import RollTask
 
 __all__ = ["TensegrityEnv"]
 
@@ -37,12 +36,15 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     onto each motor's rest-length range ``[min_rest_length, max_rest_length]``. Values
     outside [-1, 1] are clipped silently; NaN or inf raises ``ValueError``.
 
-    ``info`` holds ``com_estimate`` (m, (3,)), ``progress`` (m along the goal),
+    The task (:class:`~tensegrity_gym.model.protocols.Task`) gives the observation, the
+    reward and the end of an episode.
+
+    ``info`` holds ``com_estimate`` (m, (3,)), ``progress`` (m, the task's),
     ``estimator_healthy``, ``estimator_reinitialised``, ``estimator_failed_streams``
     (streams the estimator stopped fusing as implausible), ``estimator_rejected``
     (implausible measurements by kind), ``reward_rejected`` (why a step earned no reward,
     else None), ``sim_diverged`` and, where the backend has ground truth, ``com_true`` and
-    ``estimation_error`` (CoM distance, m).
+    ``estimation_error`` (CoM distance, m), and the task's own entries (:meth:`Task.info`).
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}  # noqa: RUF012
@@ -51,7 +53,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self,
         backend: Backend,
         estimator: Estimator,
-        task: RollTask,
+        task: Task,
         *,
         render_mode: str | None = None,
         render_size: tuple[int, int] = (480, 360),
@@ -113,6 +115,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             "estimator_rejected": dict(estimate.rejected or {}),
             "reward_rejected": None,
         }
+        info.update(self.task.info(estimate))
         truth = None if diverged else self.backend.ground_truth()
         if truth is not None:
             info["com_true"] = truth.com.copy()
@@ -180,6 +183,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     def stop_backend(self) -> None:
         """Hold the motors now (``Backend.stop``); a failure to do so is logged, not raised,
         so that the exception that called for it is the one the user sees."""
+        self.stops_sent = getattr(self, "stops_sent", 0) + 1  # read by envs.safety
         try:
             self.backend.stop()
         except Exception:
@@ -204,9 +208,11 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         previous = self._estimate
         estimate = self.estimator.update(result.samples, targets)
         self._estimate = estimate
-        self._observation = self.task.observation(estimate)
         reward = self.task.reward(previous, estimate, np.clip(a, -1.0, 1.0).astype(np.float32))
         rejected = self.task.implausible_step(previous, estimate)
+        terminated = self.task.terminated(estimate)
+        self.task.advance(previous, estimate)  # e.g. a reached goal is replaced
+        self._observation = self.task.observation(estimate)
         if not np.isfinite(reward):
             reward, rejected = 0.0, rejected or f"the reward was {reward}"
         info = self._info(estimate)
@@ -214,7 +220,6 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         info.update(result.info)
         if self.render_mode == "human":
             self.render()
-        terminated = self.task.terminated(estimate)
         return self._observation, float(reward), terminated, result.ended and not terminated, info
 
     def render(self) -> NDArray[np.uint8] | None:

@@ -10,6 +10,7 @@ its two endcap (node) centres; its overall length is ``length + 2 * endcap_radiu
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from importlib import resources
@@ -30,6 +31,8 @@ __all__ = [
     "ContactConfig",
     "DescriptionError",
     "EncoderConfig",
+    "Gait",
+    "GaitFace",
     "Ground",
     "ImuConfig",
     "Motor",
@@ -43,7 +46,13 @@ __all__ = [
     "loads_robot",
 ]
 
-PRESETS = ("three_bar", "three_bar_large", "superball")
+_ASSETS = resources.files("tensegrity_gym.model") / "assets"
+PRESETS = tuple(sorted(f.name[:-5] for f in _ASSETS.iterdir() if f.name.endswith(".yaml")))
+"""The preset robots: one YAML file each in ``tensegrity_gym/model/assets``, by name.
+A preset's file is the one place that says what the robot is and what comes with it:
+its env ids (``display_name``, ``hardware``) and its scripted gait (``gait``)."""
+
+_DISPLAY_NAME = re.compile(r"[A-Z][A-Za-z0-9]*\Z")
 
 # A rod whose nodes are placed further from its length than this cannot be assembled.
 _ASSEMBLY_TOLERANCE = 0.01  # relative
@@ -209,6 +218,31 @@ class SensorSuite:
 
 
 @dataclass(frozen=True)
+class GaitFace:
+    """One face of a scripted gait's rolling cycle: resting on ``face``, contract the
+    ``contract`` cables fully, and hold the others at their initial rest length
+    (``"hold"``) or let them out to their maximum (``"out"``)."""
+
+    face: tuple[int, ...]
+    """Node indices of the support face, sorted, (3,)."""
+    contract: tuple[int, ...]
+    """Indices into :attr:`RobotDescription.actuated` of the cables to contract."""
+    others: str
+    """``"hold"`` or ``"out"``."""
+
+
+@dataclass(frozen=True)
+class Gait:
+    """A face-to-face rolling gait (``tensegrity_gym.tasks.gaits.FaceGait`` runs it;
+    ``scripts/find_gait.py`` finds one): each contraction is held ``hold_steps``
+    control steps, then the initial rest lengths ``settle_steps``."""
+
+    faces: tuple[GaitFace, ...]
+    hold_steps: int = 25
+    settle_steps: int = 10
+
+
+@dataclass(frozen=True)
 class RobotDescription:
     name: str
     gravity: float
@@ -217,6 +251,13 @@ class RobotDescription:
     rods: tuple[Rod, ...]
     cables: tuple[Cable, ...]
     sensors: SensorSuite
+    display_name: str = ""
+    """The robot's name in its env ids (``ThreeBar`` in ``ThreeBarRoll-v0``); the YAML's
+    ``display_name``, else ``name`` in CamelCase."""
+    hardware: bool = False
+    """The robot exists on the robot link: ``...Hardware-v0`` ids are registered for it."""
+    gait: Gait | None = None
+    """Its scripted rolling gait, if it has one (the YAML's ``gait``)."""
     source: str = field(default="", compare=False)
     """The file the description was read from."""
 
@@ -482,10 +523,65 @@ def _sensors(r: _Reader, doc: Any) -> SensorSuite:
     return SensorSuite(imu_cfg, enc_cfg, cl_cfg, uwb_cfg, ct_cfg, cam_cfg)
 
 
+def _names(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[int, ...]:
+    """Distinct names, each a key of ``index``, as their indices."""
+    out: list[int] = []
+    for i, name in enumerate(r.sequence(value, path)):
+        r.string(name, f"{path}[{i}]")
+        if name not in index:
+            raise r.fail(f"{path}[{i}]", f"unknown name {name!r}; valid: {sorted(index)}")
+        if index[name] in out:
+            raise r.fail(f"{path}[{i}]", f"{name!r} is named twice")
+        out.append(index[name])
+    return tuple(out)
+
+
+def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable]) -> Gait:
+    """The ``gait`` section: faces by node names, cables by name (actuated only)."""
+    g = r.mapping(doc, "gait", {"faces"}, frozenset({"hold_steps", "settle_steps"}))
+    steps = {"hold_steps": 25, "settle_steps": 10}
+    for key, low in (("hold_steps", 1), ("settle_steps", 0)):
+        value = g.get(key, steps[key])
+        if not isinstance(value, int) or isinstance(value, bool) or value < low:
+            raise r.fail(f"gait.{key}", f"expected an integer >= {low}, got {value!r}")
+        steps[key] = value
+    node_index = {n.name: i for i, n in enumerate(nodes)}
+    actuated = {c.name: k for k, c in enumerate(c for c in cables if c.actuated)}
+    faces: list[GaitFace] = []
+    for i, item in enumerate(r.sequence(g["faces"], "gait.faces")):
+        p = f"gait.faces[{i}]"
+        f = r.mapping(item, p, {"face", "contract", "others"})
+        face = tuple(sorted(_names(r, f["face"], f"{p}.face", node_index)))
+        if len(face) != 3:
+            raise r.fail(f"{p}.face", f"a support face has 3 nodes, got {len(face)}")
+        if any(face == other.face for other in faces):
+            raise r.fail(f"{p}.face", "this face has an entry already")
+        contract = _names(r, f["contract"], f"{p}.contract", actuated)
+        if f["others"] not in ("hold", "out"):
+            raise r.fail(f"{p}.others", f"expected 'hold' or 'out', got {f['others']!r}")
+        faces.append(GaitFace(face, contract, f["others"]))
+    return Gait(tuple(faces), steps["hold_steps"], steps["settle_steps"])
+
+
+def _display_name(r: _Reader, top: dict[str, Any]) -> str:
+    """The YAML's ``display_name`` (CamelCase, for env ids), else ``name`` in CamelCase."""
+    name = top.get("display_name")
+    if name is None:
+        return "".join(part.capitalize() for part in str(top["name"]).split("_"))
+    if not isinstance(name, str) or not _DISPLAY_NAME.match(name):
+        raise r.fail("display_name", f"expected a CamelCase word such as 'ThreeBar', got {name!r}")
+    return name
+
+
 def parse_robot(doc: Any, source: str) -> RobotDescription:
     """Validate a parsed YAML document and build the description from it."""
     r = _Reader(source)
-    top = r.mapping(doc, "", {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"})
+    top = r.mapping(
+        doc,
+        "",
+        {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"},
+        frozenset({"display_name", "hardware", "gait"}),
+    )
     g = r.mapping(
         top["ground"],
         "ground",
@@ -609,6 +705,9 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         rods=tuple(rods),
         cables=tuple(cables),
         sensors=_sensors(r, top["sensors"]),
+        display_name=_display_name(r, top),
+        hardware=r.boolean(top.get("hardware", False), "hardware"),
+        gait=None if top.get("gait") is None else _gait(r, top["gait"], nodes, cables),
         source=source,
     )
 
@@ -626,6 +725,8 @@ def robot_document(d: RobotDescription) -> dict[str, Any]:
     names = [n.name for n in d.nodes]
     return {
         "name": d.name,
+        "display_name": d.display_name,
+        "hardware": d.hardware,
         "gravity": d.gravity,
         "ground": plain(asdict(d.ground)),
         "nodes": [{"name": n.name, "position": list(n.position)} for n in d.nodes],
@@ -654,6 +755,25 @@ def robot_document(d: RobotDescription) -> dict[str, Any]:
             for c in d.cables
         ],
         "sensors": plain(asdict(d.sensors)),
+    } | ({} if d.gait is None else {"gait": gait_document(d)})
+
+
+def gait_document(d: RobotDescription) -> dict[str, Any]:
+    """The YAML ``gait`` section of a description that has a gait, by names."""
+    if d.gait is None:
+        raise ValueError(f"robot {d.name!r} has no gait")
+    actuated = [d.cables[int(k)].name for k in d.actuated]
+    return {
+        "hold_steps": d.gait.hold_steps,
+        "settle_steps": d.gait.settle_steps,
+        "faces": [
+            {
+                "face": [d.nodes[i].name for i in f.face],
+                "contract": [actuated[k] for k in f.contract],
+                "others": f.others,
+            }
+            for f in d.gait.faces
+        ],
     }
 
 

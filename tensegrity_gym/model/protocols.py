@@ -1,14 +1,15 @@
-"""The contracts between the env and its parts: backends and estimators."""
+"""The contracts between the env and its parts: backends, estimators and tasks."""
 
 from __future__ import annotations
 
 import inspect
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
     import numpy as np
+    from gymnasium import spaces
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
@@ -22,6 +23,7 @@ __all__ = [
     "ReadyCheck",
     "SensorCalibration",
     "StepResult",
+    "Task",
     "backend_can_wait",
     "backend_sample_kinds",
 ]
@@ -134,6 +136,55 @@ class Estimator(Protocol):
     ) -> Estimate: ...
 
     def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate: ...
+
+
+@runtime_checkable
+class Task(Protocol):
+    """What the robot is asked to do: the observation, the reward and the end of an
+    episode, all computed from the estimator's :class:`Estimate` (never ground truth).
+
+    The env calls, per episode, :meth:`reset` once, then per step :meth:`reward`,
+    :meth:`implausible_step`, :meth:`terminated`, :meth:`advance` and :meth:`observation`
+    in that order, and :meth:`progress` and :meth:`info` for ``info``.
+    """
+
+    observation_space: spaces.Box
+    """Finite bounds, float32; :meth:`observation` always lies inside it."""
+
+    def reset(self, estimate: Estimate, rng: np.random.Generator) -> None:
+        """Start an episode from the first estimate; any goal is drawn from ``rng`` (the
+        env's ``np_random``, so that a seed fixes it)."""
+        ...
+
+    def observation(self, estimate: Estimate) -> NDArray[np.float32]:
+        """The policy's observation: finite (NaN in the estimate is cleaned), bounded."""
+        ...
+
+    def reward(self, previous: Estimate, estimate: Estimate, action: NDArray[np.float32]) -> float:
+        """The reward of the step from ``previous`` to ``estimate`` under ``action``
+        (in [-1, 1], (m,)); bounded, 0 progress for an implausible step."""
+        ...
+
+    def implausible_step(self, previous: Estimate, estimate: Estimate) -> str | None:
+        """Why the step earns no progress (the estimate jumped, or is not finite), else
+        None; goes to ``info["reward_rejected"]``."""
+        ...
+
+    def terminated(self, estimate: Estimate) -> bool:
+        """The task is done: the episode ends (``terminated``)."""
+        ...
+
+    def advance(self, previous: Estimate, estimate: Estimate) -> None:
+        """Move the task on after the step was rewarded (a reached goal is replaced)."""
+        ...
+
+    def progress(self, estimate: Estimate) -> float:
+        """The task's progress since the reset (m), for ``info["progress"]``."""
+        ...
+
+    def info(self, estimate: Estimate) -> dict[str, Any]:
+        """Task entries for ``info`` beside the env's own (e.g. the goal); may be empty."""
+        ...
 
 
 def backend_can_wait(backend: object) -> bool:

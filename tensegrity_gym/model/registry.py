@@ -1,4 +1,4 @@
-"""Registries of plug-in parts, found by name: estimators (and, as they come, tasks).
+"""Registries of plug-in parts, found by name: estimators and tasks.
 
 A part is registered by name with a factory and what it needs. Built-in parts name
 their factories as ``"module:attribute"`` strings, imported only when one is made, so
@@ -11,6 +11,11 @@ Example: a lab's own estimator::
 
     register_estimator("my_filter", MyFilter, requires=("uwb", "imu"))
     env = gym.make("tensegrity_gym/ThreeBarRoll-v0", estimator="my_filter")
+
+and a task (group ``tensegrity_gym.tasks``), made by ``make_env(robot, task=name)``::
+
+    register_task("stand_up", StandUpTask, arguments=("height",))
+    env = make_env("three_bar", task="stand_up", height=0.3)
 """
 
 from __future__ import annotations
@@ -26,16 +31,21 @@ from tensegrity_gym.model.samples import GROUND_TRUTH, SAMPLE_KINDS
 if TYPE_CHECKING:
     from collections.abc import Callable, Collection, Iterable
 
-    from tensegrity_gym.model.protocols import Estimator
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import Estimator, Task
     from tensegrity_gym.model.samples import GroundTruth
 
 __all__ = [
     "ESTIMATORS",
+    "TASKS",
     "EstimatorSpec",
     "Registry",
+    "TaskSpec",
     "estimator_spec",
     "register_estimator",
+    "register_task",
     "resolve",
+    "task_spec",
 ]
 
 log = logging.getLogger(__name__)
@@ -231,4 +241,78 @@ register_estimator(
     requires=(GROUND_TRUTH,),
     summary="ground truth (the simulator, or motion capture)",
     needs={GROUND_TRUTH: "the true state: the simulator or motion capture"},
+)
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """A task by name: how to make it and the arguments of ``make`` that are its own.
+
+    ``factory(description, control_period=seconds, **arguments)`` makes one for the
+    robot ``description`` stepped every ``control_period`` seconds; ``arguments`` are the
+    keyword arguments of ``gym.make`` (``make_env``) the task takes, by name.
+    """
+
+    name: str
+    factory: str | Callable[..., Task]
+    arguments: frozenset[str] = frozenset()
+    summary: str = ""
+
+    def check(self, arguments: Collection[str]) -> None:
+        """ValueError naming each argument this task does not take."""
+        unknown = sorted(set(arguments) - self.arguments)
+        if unknown:
+            raise ValueError(
+                f"make: unknown argument {', '.join(map(repr, unknown))}: the task "
+                f"{self.name!r} takes {sorted(self.arguments)} beside make's own"
+            )
+
+    def create(
+        self, description: RobotDescription, control_period: float, arguments: dict[str, Any]
+    ) -> Task:
+        """The task for ``description``; its factory checks the values of ``arguments``."""
+        self.check(arguments)
+        factory = resolve(self.factory)
+        return factory(description, control_period=control_period, **arguments)  # type: ignore[no-any-return]
+
+
+def _task_from_plugin(name: str, obj: Any) -> TaskSpec:
+    if isinstance(obj, TaskSpec):
+        return obj if obj.name == name else replace(obj, name=name)
+    raise TypeError(f"expected a TaskSpec, got {type(obj).__name__}")
+
+
+TASKS: Registry[TaskSpec] = Registry("task", "tensegrity_gym.tasks", _task_from_plugin)
+
+
+def register_task(
+    name: str,
+    factory: str | Callable[..., Task],
+    *,
+    arguments: Iterable[str] = (),
+    summary: str = "",
+    overwrite: bool = False,
+) -> TaskSpec:
+    """Register a task: ``make_env(robot, task=name, **arguments)`` then makes it. See
+    :class:`TaskSpec` for the fields."""
+    spec = TaskSpec(name, factory, frozenset(arguments), summary)
+    return TASKS.register(name, spec, overwrite=overwrite)
+
+
+def task_spec(name: str) -> TaskSpec:
+    """The registered task ``name``; ValueError listing the choices if none is."""
+    return TASKS[name]
+
+
+register_task(
+    "roll",
+    "tensegrity_gym.tasks.roll:RollTask",
+    arguments=("goal_heading", "goal_distance", "ctrl_cost"),
+    summary="roll the CoM along a goal heading",
+)
+register_task(
+    "goto",
+    "tensegrity_gym.tasks.goto:GoToTask",
+    arguments=("goal_range", "success_radius", "success_bonus", "ctrl_cost"),
+    summary="reach goal points on the ground, one after another",
 )

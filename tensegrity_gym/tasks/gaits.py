@@ -6,10 +6,12 @@ others hold their initial rest length or are let out to their maximum. The gait 
 that command for ``hold_steps``, then returns to the initial lengths for
 ``settle_steps`` so the robot comes to rest on its next face, and repeats.
 
-The tables were found by ``scripts/find_gait.py``, which searches the transitions
-that carry the centre of mass furthest in one direction. Faces are sets of node
-indices, fixed to the robot's body, so a table works at any heading; the rolling
-direction follows the robot's orientation, not the task's goal.
+Each preset's table lives with the robot, in the ``gait`` section of its YAML
+(:class:`tensegrity_gym.model.description.Gait`), found by ``scripts/find_gait.py``,
+which searches the transitions that carry the centre of mass furthest in one
+direction. Faces are sets of node indices, fixed to the robot's body, so a table works
+at any heading; the rolling direction follows the robot's orientation, not the task's
+goal.
 """
 
 from __future__ import annotations
@@ -18,69 +20,76 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tensegrity_gym.model.description import DescriptionError
+
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
-    from tensegrity_gym.tasks.roll import RollTask
+    from tensegrity_gym.model.protocols import Task
+    from tensegrity_gym.tasks.common import TaskObservation
 
-__all__ = ["GAIT_TABLES", "FaceGait"]
+__all__ = ["FaceGait", "GaitTable", "gait_table"]
 
-# face (sorted node ids) -> (actuated cable indices to contract, "hold" | "out")
 GaitTable = dict[tuple[int, ...], tuple[tuple[int, ...], str]]
+"""Face (sorted node indices) -> (actuated cable indices to contract, "hold" | "out")."""
 
-GAIT_TABLES: dict[str, GaitTable] = {
-    "three_bar": {
-        (1, 2, 5): ((0, 4, 5), "out"),
-        (0, 3, 5): ((2, 3, 4), "out"),
-        (1, 3, 4): ((1, 3, 5), "out"),
-    },
-    "superball": {
-        (1, 4, 11): ((7, 8), "out"),
-        (1, 3, 4): ((5, 6), "hold"),
-        (5, 7, 8): ((3,), "hold"),
-        (0, 2, 7): ((4, 5), "hold"),
-        (2, 6, 10): ((6, 7), "out"),
-        (4, 6, 10): ((6, 8), "hold"),
-    },
-}
+
+def gait_table(description: RobotDescription) -> GaitTable:
+    """The robot's own gait (its YAML's ``gait``) as a table; ValueError if it has none."""
+    if description.gait is None:
+        raise DescriptionError(
+            f"no gait table for robot {description.name!r}: its description "
+            f"({description.source or 'not from a file'}) has no 'gait' section; "
+            "find one with scripts/find_gait.py"
+        )
+    return {f.face: (f.contract, f.others) for f in description.gait.faces}
 
 
 class FaceGait:
     """A scripted policy that rolls the robot face to face.
 
-    Call it with observations of a :class:`RollTask`; it returns actions in [-1, 1].
-    Keeps a small state (the current face and phase); :meth:`reset` clears it.
+    Call it with observations of a task in the goal frame (:class:`RollTask` or
+    :class:`GoToTask`); it returns actions in [-1, 1], (m,). Keeps a small state (the
+    current face and phase); :meth:`reset` clears it.
 
     Args:
-        description: the robot; its name selects the table unless ``table`` is given.
-        task: decodes observations into node positions.
-        table: a face-to-action table, overriding the preset's.
-        hold_steps, settle_steps: control steps of the contraction and of the rest.
+        description: the robot; its ``gait`` gives the table unless ``table`` is given.
+        task: decodes observations into node positions (its ``decode``, as the
+            tasks of :mod:`tensegrity_gym.tasks.common` have).
+        table: a face-to-action table, overriding the robot's.
+        hold_steps, settle_steps: control steps of the contraction and of the rest;
+            ``None``: the robot's gait's (25 and 10 without one).
     """
 
     def __init__(
         self,
         description: RobotDescription,
-        task: RollTask,
+        task: Task,
         *,
         table: GaitTable | None = None,
-        hold_steps: int = 25,
-        settle_steps: int = 10,
+        hold_steps: int | None = None,
+        settle_steps: int | None = None,
     ) -> None:
-        if table is None:
-            if description.name not in GAIT_TABLES:
-                raise ValueError(
-                    f"no gait table for robot {description.name!r}; "
-                    f"tables exist for {sorted(GAIT_TABLES)}"
-                )
-            table = GAIT_TABLES[description.name]
+        gait = description.gait
+        table = gait_table(description) if table is None else table
+        hold_steps = (gait.hold_steps if gait else 25) if hold_steps is None else hold_steps
+        settle_steps = (gait.settle_steps if gait else 10) if settle_steps is None else settle_steps
         if hold_steps < 1 or settle_steps < 0:
             raise ValueError("hold_steps must be >= 1 and settle_steps >= 0")
         m = description.n_actuated
         for face, (cables, rest) in table.items():
             if rest not in ("hold", "out") or any(not 0 <= k < m for k in cables):
                 raise ValueError(f"bad gait table entry {face}: {(cables, rest)}")
+        decode = getattr(task, "decode", None)
+        if not callable(decode):
+            raise TypeError(
+                f"FaceGait reads the robot's nodes from the observation: {type(task).__name__} "
+                "has no decode(); use a task in the goal frame (tensegrity_gym.tasks.common)"
+            )
+        self._decode: Callable[[NDArray[np.float32]], TaskObservation] = decode
         self.table = table
         self.task = task
         self.hold_steps = hold_steps
@@ -99,7 +108,7 @@ class FaceGait:
         self._phase = 0
 
     def support_face(self, observation: NDArray[np.float32]) -> tuple[int, ...]:
-        z = self.task.decode(observation).positions[:, 2]
+        z = self._decode(observation).positions[:, 2]
         return tuple(sorted(np.argsort(z, kind="stable")[:3].tolist()))
 
     def action_for_face(self, face: tuple[int, ...]) -> NDArray[np.float32]:
