@@ -10,7 +10,7 @@ through this project's UKF and through filterpy's ``UnscentedKalmanFilter`` on t
 model and the same measurements, side by side in one process. filterpy calls its
 process model once per sigma point; it is timed twice, with the model as this project
 compiles it (numba) and with the same equations in plain numpy, the way a model is
-written for filterpy.
+written for filterpy (:func:`propagate_numpy`, here: benchmark code, not the filter's).
 """
 
 from __future__ import annotations
@@ -31,12 +31,14 @@ if TYPE_CHECKING:
 
     from estimation.ukf.estimator import FilterStep
     from estimation.ukf.measurements import MeasurementBatch
+    from estimation.ukf.spring_mass import KernelArrays
     from tensegrity_gym.envs.roll_env import TensegrityEnv
 
 __all__ = [
     "VARIANTS",
     "bench_estimation",
     "bench_filter_speed",
+    "propagate_numpy",
     "record_face_transition",
     "record_stationary_actuation",
 ]
@@ -138,6 +140,138 @@ def bench_estimation(seeds: tuple[int, ...] = (0, 1, 2), steps: int = 200) -> di
     }
 
 
+def _ramp_np(x: NDArray[np.float64], width: float) -> NDArray[np.float64]:
+    """The model's rounded max(0, x), elementwise (estimation.ukf.spring_mass._ramp)."""
+    u = np.clip(x + width, 0.0, 2.0 * width)
+    return np.where(x >= width, x, u * u / (4.0 * width))
+
+
+def _step_np(x: NDArray[np.float64], width: float) -> NDArray[np.float64]:
+    """The slope of :func:`_ramp_np`."""
+    return np.clip((x + width) / (2.0 * width), 0.0, 1.0)
+
+
+def _member_forces_np(
+    x: NDArray[np.float64],
+    v: NDArray[np.float64],
+    rest: NDArray[np.float64],
+    members: NDArray[np.int64],
+    member_params: NDArray[np.float64],
+    smooth: float,
+) -> NDArray[np.float64]:
+    """What every member pulls on its first node, (S, M, 3) (N), for positions and
+    velocities ``x``, ``v`` (S, n, 3) and rest lengths ``rest`` (M,) (m)."""
+    i, j, cable = members[:, 0], members[:, 1], members[:, 2] != 0
+    stiffness, damping = member_params[:, 0], member_params[:, 1]
+    u = x[:, j] - x[:, i]
+    length = np.linalg.norm(u, axis=-1)
+    rate = np.einsum("smi,smi->sm", u, v[:, j] - v[:, i]) / length
+    stretch = length - rest
+    tension = np.where(
+        cable,
+        np.maximum(
+            stiffness * _ramp_np(stretch, smooth) + damping * rate * _step_np(stretch, smooth),
+            0.0,
+        ),
+        stiffness * stretch + damping * rate,
+    )
+    return np.asarray((tension / length)[..., None] * u)
+
+
+def _pair_forces_np(
+    x: NDArray[np.float64],
+    v: NDArray[np.float64],
+    by_node: NDArray[np.float64],
+    arrays: KernelArrays,
+) -> None:
+    """Adds the rod-rod contact forces to ``by_node`` (n, S, 3) (N), from positions and
+    velocities ``x``, ``v`` (S, n, 3)."""
+    _, _, _, _, _, smooth, contact_k, contact_c = arrays.constants
+    a0, a1, b0, b1 = arrays.pairs.T
+    reach, bound = arrays.pair_params[:, 0], arrays.pair_params[:, 1]
+    d1, d2 = x[:, a1] - x[:, a0], x[:, b1] - x[:, b0]
+    r = x[:, a0] - x[:, b0]
+    aa, ee = np.einsum("spi,spi->sp", d1, d1), np.einsum("spi,spi->sp", d2, d2)
+    f, cc = np.einsum("spi,spi->sp", d2, r), np.einsum("spi,spi->sp", d1, r)
+    bb = np.einsum("spi,spi->sp", d1, d2)
+    denom = aa * ee - bb * bb
+    s = np.where(
+        denom > 1e-12 * aa * ee,
+        np.clip((bb * f - cc * ee) / np.where(denom > 0, denom, 1.0), 0.0, 1.0),
+        0.0,
+    )
+    t = (bb * s + f) / ee
+    s = np.where(
+        t < 0.0,
+        np.clip(-cc / aa, 0.0, 1.0),
+        np.where(t > 1.0, np.clip((bb - cc) / aa, 0.0, 1.0), s),
+    )
+    t = np.clip(t, 0.0, 1.0)
+    gap = r + s[..., None] * d1 - t[..., None] * d2
+    dist = np.linalg.norm(gap, axis=-1)
+    centre = 0.5 * (x[:, a0] + x[:, a1] - x[:, b0] - x[:, b1])
+    near = (
+        (np.einsum("spi,spi->sp", centre, centre) <= bound)
+        & (dist >= 1e-9)
+        & (dist < reach + smooth)
+    )
+    normal = gap / np.where(dist > 0, dist, 1.0)[..., None]
+    depth = reach - dist
+    sv, tv = s[..., None], t[..., None]
+    rel = np.einsum(
+        "spi,spi->sp",
+        (1 - sv) * v[:, a0] + sv * v[:, a1] - (1 - tv) * v[:, b0] - tv * v[:, b1],
+        normal,
+    )
+    fn = contact_k * _ramp_np(depth, smooth) - contact_c * rel * _step_np(depth, smooth)
+    push = np.where(near & (fn > 0.0), fn, 0.0)[..., None] * normal
+    for nodes, share in ((a0, (1 - sv) * push), (a1, sv * push)):
+        np.add.at(by_node, nodes, share.transpose(1, 0, 2))
+    for nodes, share in ((b0, (1 - tv) * push), (b1, tv * push)):
+        np.add.at(by_node, nodes, -share.transpose(1, 0, 2))
+
+
+def propagate_numpy(
+    states: NDArray[np.float64],
+    n_steps: int,
+    h: float,
+    rest: NDArray[np.float64],
+    arrays: KernelArrays,
+) -> None:
+    """The model's equations (a ``estimation.ukf.spring_mass.Kernel``) in plain numpy,
+    vectorised over states, members and rod pairs: what a model written for filterpy
+    would be.
+
+    Advances ``states`` (S, 6 n) in place by ``n_steps`` substeps of ``h`` seconds,
+    ``rest`` (2, M) the members' rest lengths (m) at the start and end.
+    """
+    S, n = states.shape[0], arrays.nodes.shape[0]
+    x = states[:, : 3 * n].reshape(S, n, 3)
+    v = states[:, 3 * n :].reshape(S, n, 3)
+    i, j = arrays.members[:, 0], arrays.members[:, 1]
+    inv_mass, ground_height = arrays.nodes[:, 0], arrays.nodes[:, 1]
+    gravity, ground_k, ground_c, mu, slip, smooth, _, _ = arrays.constants
+    for step in range(n_steps):
+        rest_now = rest[0] + (step + 0.5) / n_steps * (rest[1] - rest[0])
+        pull = _member_forces_np(x, v, rest_now, arrays.members, arrays.member_params, smooth)
+        force = np.zeros_like(x)
+        by_node = force.transpose(1, 0, 2)  # a view, (n, S, 3): np.add.at on the node axis
+        np.add.at(by_node, i, pull.transpose(1, 0, 2))
+        np.add.at(by_node, j, -pull.transpose(1, 0, 2))
+        if len(arrays.pairs):
+            _pair_forces_np(x, v, by_node, arrays)
+        depth = ground_height - x[..., 2]
+        fn = ground_k * _ramp_np(depth, smooth) - ground_c * v[..., 2] * _step_np(depth, smooth)
+        fn = np.maximum(fn, 0.0)
+        v += h * inv_mass[:, None] * force
+        v[..., 2] += h * (inv_mass * fn - gravity)
+        speed = np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2 + slip * slip)
+        scale = 1.0 / (1.0 + h * inv_mass * mu * fn / speed)
+        v[..., 0] *= scale
+        v[..., 1] *= scale
+        x += h * v
+
+
 def _filterpy_ukf(x: NDArray[np.float64], P: NDArray[np.float64], config: UkfConfig) -> Any:
     from filterpy.kalman import MerweScaledSigmaPoints
     from filterpy.kalman import UnscentedKalmanFilter as FilterpyUKF
@@ -202,7 +336,11 @@ def bench_filter_speed(
                     step: FilterStep = prepared,
                 ) -> NDArray[np.float64]:
                     return model.propagate(
-                        state, dt, step.rest_start, step.rest_end, compiled=compiled
+                        state,
+                        dt,
+                        step.rest_start,
+                        step.rest_end,
+                        kernel=None if compiled else propagate_numpy,
                     )
 
                 ref = _filterpy_ukf(x0, P0, estimator.config)

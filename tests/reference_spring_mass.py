@@ -39,6 +39,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from estimation.ukf.spring_mass import SpringMassModel
+    from tensegrity_gym.model.description import RobotDescription
 
 
 def ramp(u: float, w: float) -> float:
@@ -209,3 +210,19 @@ def propagate_reference(
             v[i, :2] *= shrink
             x[i] += h * v[i]
     return np.concatenate([x.ravel(), v.ravel()])
+
+
+def awkward_states(d: RobotDescription, rng: np.random.Generator) -> NDArray[np.float64]:
+    """Six states (6, 6 n) near the resting shape, perturbed by 3 % of a rod length, at
+    rest: in the first a node is pushed 2 cm under the ground, in the second the robot
+    is shrunk by 10 % (its cables slack), in the third rod 1's centre is moved onto rod
+    0's, half an endcap radius above it (the rods pressed together)."""
+    x0 = np.concatenate([d.initial_positions.ravel(), np.zeros(3 * d.n_nodes)])
+    states = x0 + 0.03 * d.characteristic_length * rng.standard_normal((6, x0.size))
+    states[0, 2] -= 0.02
+    states[1, : 3 * d.n_nodes] *= 0.9
+    nodes = states[2, : 3 * d.n_nodes].reshape(-1, 3)
+    (a0, a1), (b0, b1) = d.rod_nodes[0], d.rod_nodes[1]
+    shift = 0.5 * (nodes[a0] + nodes[a1]) - 0.5 * (nodes[b0] + nodes[b1])
+    nodes[[b0, b1]] += shift + np.array([0.0, 0.0, 0.5 * d.rods[0].endcap_radius])
+    return np.asarray(states)

@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from agents.bench_estimation import (
     VARIANTS,
     bench_filter_speed,
+    propagate_numpy,
     record_face_transition,
     record_stationary_actuation,
 )
 from agents.runs import replay, trajectory_errors
-from estimation.ukf import UkfEstimator
+from estimation.ukf import SpringMassModel, UkfEstimator
+from tensegrity_gym.model.description import load_robot
+
+from .reference_spring_mass import awkward_states, propagate_reference
 
 
 def test_filter_speed_compares_like_with_like() -> None:
@@ -21,6 +26,21 @@ def test_filter_speed_compares_like_with_like() -> None:
     assert out["max_state_difference_vs_filterpy_m"] < 1e-6
     assert out["fast_filter_step_ms_median"] > 0
     assert out["speedup_vs_filterpy_numpy_model"] > out["speedup_vs_filterpy_compiled_model"] > 1
+
+
+@pytest.mark.parametrize("robot", ["three_bar", "superball"])
+def test_numpy_model_of_the_benchmark_matches_the_reference(robot: str) -> None:
+    """The "plain numpy" model filterpy is timed with computes what the filter's does."""
+    d = load_robot(robot)
+    model = SpringMassModel(d)
+    states = awkward_states(d, np.random.default_rng(3))
+    rest = d.rest_lengths[d.actuated]
+    out = model.propagate(states, 0.05, rest, 0.95 * rest, kernel=propagate_numpy)
+    for state, got in zip(states, out, strict=True):
+        ref = propagate_reference(model, state, 0.05, rest, 0.95 * rest)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+    single = model.propagate(states[2], 0.05, rest, kernel=propagate_numpy)
+    np.testing.assert_allclose(single, model.propagate(states[2], 0.05, rest), rtol=0, atol=1e-9)
 
 
 def test_recorded_runs_replay_through_every_variant() -> None:
