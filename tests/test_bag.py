@@ -16,6 +16,7 @@ import tensegrity_gym  # noqa: F401
 from agents.cli import main as cli_main
 from hardware.bag import BagReader, ReplayBackend, read_run
 from hardware.bag import messages as m
+from hardware.bag.kinds import TopicTable
 from hardware.recording import BagSink, MemorySink, RecordingBackend
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.protocols import Backend
@@ -73,14 +74,17 @@ def test_time_stamps_survive_nanoseconds_exactly() -> None:
 
 def test_every_topic_of_a_robot_has_a_registered_type() -> None:
     d = load_robot("superball")
-    table = m.TopicTable.for_robot(d)
+    table = TopicTable(d)
     store = m.typestore()
-    assert len(table.imu_raw) == len(table.imu_mag) == len(table.ahrs) == d.n_rods
+    for kind, channels in (("imu", 2), ("ahrs", 1)):
+        for channel in range(channels):
+            assert len(table.rod_topics(kind, channel)) == d.n_rods
     for topic, msgtype in table.types.items():
         assert topic.startswith("/")
         assert msgtype in store.types, topic
         assert store.generate_msgdef(msgtype, ros_version=2)[0]  # its schema can be embedded
-    assert table.rod_topic("ahrs", 2) == f"/{d.rods[2].name}/imu/data"
+    assert table.topic("ahrs", 0, 2) == f"/{d.rods[2].name}/imu/data"
+    assert table.topic("rgbd", 1) == "/camera/depth/image_raw"
 
 
 # ---------------------------------------------------------------------- round trip

@@ -25,23 +25,15 @@ import logging
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
+from hardware.bag import messages as m
 from hardware.bag.codec import MessageError, RobotCodec
-from tensegrity_gym.model.samples import (
-    AhrsSample,
-    CableLengthSample,
-    ContactSample,
-    EncoderSample,
-    ImuSample,
-    RgbdFrame,
-    UwbRangeSample,
-    ns_to_seconds,
-    seconds_to_ns,
-)
+from tensegrity_gym.model.samples import ns_to_seconds
 
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from hardware.bag.codec import Raw
+    from hardware.bag.kinds import SensorKind
+    from hardware.bag.messages import Raw
     from tensegrity_gym.model.estimate import Estimate
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
@@ -49,22 +41,8 @@ __all__ = ["Assembled", "SampleAssembler", "header_stamp"]
 
 log = logging.getLogger(__name__)
 
-# Canonical order of samples that share a time stamp: the simulator's sensor order.
-_KIND_ORDER = {
-    ImuSample: 0,
-    AhrsSample: 1,
-    EncoderSample: 2,
-    CableLengthSample: 3,
-    ContactSample: 4,
-    UwbRangeSample: 5,
-    RgbdFrame: 6,
-}
 CLOCK_JUMP_RUN = 50
 """Late messages in a row on one topic that are taken as its source's clock jumping."""
-COLOR_TOPIC = "/camera/color/image_raw"
-DEPTH_TOPIC = "/camera/depth/image_raw"
-TRUTH_STATE_TOPIC = "/ground_truth/state"
-TRUTH_POSES_TOPIC = "/ground_truth/rod_poses"
 
 
 def header_stamp(raw: Raw) -> int:
@@ -123,10 +101,9 @@ class SampleAssembler:
         self._buffered: dict[str, set[int]] = {}  # "sort": stamps waiting, per topic
         self._newest: dict[str, int] = {}
         self._samples: list[tuple[Sample, str, int]] = []
-        self._imu = _Pending()
-        self._mag = _Pending()
-        self._color = _Pending()
-        self._depth = _Pending()
+        kinds = codec.topics.kinds
+        self._order = {k.sample: k.order for k in kinds}  # within a stamp: the table's
+        self._halves = {k.name: (_Pending(), _Pending()) for k in kinds if k.pairing is not None}
         self._truth_state = _Pending()
         self._truth_poses = _Pending()
         self._estimate: Estimate | None = None
@@ -180,70 +157,38 @@ class SampleAssembler:
         (any clock, seconds), which :meth:`take` uses to decide how long half a pair
         waits for the other half; ``at_ns`` is the time a skip is reported at. True if
         it was a sensor message and was taken."""
-        codec, topics = self.codec, self.codec.topics
+        route = self.codec.topics.routes.get(topic)
         try:
-            if topic in topics.imu_raw:
-                stamp, gyro, accel = codec.decode_imu_raw(raw)
-                key = (stamp, topics.imu_raw[topic])
-                if self.accept(topic, stamp, key in self._mag.items):
-                    self._imu.items[key] = ((gyro, accel), arrival)
-                    return True
-            elif topic in topics.imu_mag:
-                stamp, mag = codec.decode_mag(raw)
-                key = (stamp, topics.imu_mag[topic])
-                if self.accept(topic, stamp, key in self._imu.items):
-                    self._mag.items[key] = (mag, arrival)
-                    return True
-            elif topic in topics.ahrs:
-                stamp, quat = codec.decode_ahrs(raw)
-                if self.accept(topic, stamp):
-                    self._push(codec.make_ahrs(stamp, topics.ahrs[topic], quat), topic, stamp)
-                    return True
-            elif topic == "/motors/rest_lengths":
-                stamp, values = codec.decode_joint_state(raw, "actuated")
-                if self.accept(topic, stamp):
-                    self._push(codec.make_encoder(stamp, values), topic, stamp)
-                    return True
-            elif topic == "/cables/lengths":
-                stamp, values = codec.decode_joint_state(raw, "all")
-                if self.accept(topic, stamp):
-                    self._push(codec.make_cable_lengths(stamp, values), topic, stamp)
-                    return True
-            elif topic == "/uwb/ranges":
-                uwb = codec.decode_uwb(raw)
-                stamp = seconds_to_ns(uwb.t)
-                if self.accept(topic, stamp):
-                    self._push(uwb, topic, stamp)
-                    return True
-            elif topic == "/contacts":
-                contact = codec.decode_contacts(raw)
-                stamp = seconds_to_ns(contact.t)
-                if self.accept(topic, stamp):
-                    self._push(contact, topic, stamp)
-                    return True
-            elif topic == COLOR_TOPIC:
-                stamp, image = codec.decode_image(raw, "color")
-                if self.accept(topic, stamp, (stamp, 0) in self._depth.items):
-                    self._color.items[(stamp, 0)] = (image, arrival)
-                    return True
-            elif topic == DEPTH_TOPIC:
-                stamp, image = codec.decode_image(raw, "depth")
-                if self.accept(topic, stamp, (stamp, 0) in self._color.items):
-                    self._depth.items[(stamp, 0)] = (image, arrival)
-                    return True
-            elif topic == TRUTH_STATE_TOPIC:
+            if route is not None:
+                return self._add_sensor(route, topic, raw, arrival)
+            if topic == m.TRUTH_STATE_TOPIC:
                 self._truth_state.items[(header_stamp(raw), 0)] = (bytes(raw), arrival)
-            elif topic == TRUTH_POSES_TOPIC:
+            elif topic == m.TRUTH_POSES_TOPIC:
                 self._truth_poses.items[(header_stamp(raw), 0)] = (bytes(raw), arrival)
-            elif topic == "/estimate/state":
-                self._estimate = codec.decode_estimate(raw)
+            elif topic == m.ESTIMATE_STATE_TOPIC:
+                self._estimate = self.codec.decode_estimate(raw)
             # /estimate/rod_poses is for viewers; the state holds everything.
         except MessageError as err:
             self.on_skip("undecodable", topic, at_ns, str(err))
         return False
 
-    def _push(self, sample: Sample, topic: str, stamp: int) -> None:
-        self._samples.append((sample, topic, stamp))
+    def _add_sensor(
+        self, route: tuple[SensorKind, int, int], topic: str, raw: Raw, arrival: float
+    ) -> bool:
+        """A message of a sensor kind's channel: a sample, or half of one, buffered."""
+        kind, channel, rod = route
+        stamp, value = kind.decode(self.codec, channel, rod, raw)
+        if kind.pairing is None:
+            if not self.accept(topic, stamp):
+                return False
+            self._samples.append((value, topic, stamp))
+            return True
+        mine, other = self._halves[kind.name][channel], self._halves[kind.name][1 - channel]
+        key = (stamp, rod)
+        if not self.accept(topic, stamp, key in other.items):
+            return False
+        mine.items[key] = (value, arrival)
+        return True
 
     # ------------------------------------------------------------------ output
 
@@ -256,7 +201,6 @@ class SampleAssembler:
         NaN there, and an older lone image or ground-truth half is skipped as
         ``unpaired``.
         """
-        codec = self.codec
         handed: list[tuple[Sample, str, int]] = self._samples
         self._samples = []
         young = now - wait
@@ -264,80 +208,79 @@ class SampleAssembler:
         def ripe(item: tuple[Any, float]) -> bool:
             return wait <= 0.0 or item[1] <= young
 
-        # A half still waiting for its other half holds back the later samples of its
-        # stream, so that each stream is handed out in time order across calls.
-        held: dict[int, int] = {}  # rod -> oldest waiting stamp
-        for (stamp, rod), entry in [*self._imu.items.items(), *self._mag.items.items()]:
-            if (stamp, rod) not in self._imu.items or (stamp, rod) not in self._mag.items:
-                if not ripe(entry) and stamp < held.get(rod, stamp + 1):
-                    held[rod] = stamp
-        for key in sorted(self._imu.items):
-            entry = self._imu.items[key]
-            mag = self._mag.items.get(key)
-            if key[1] in held and key[0] > held[key[1]]:
-                continue
-            if mag is None and not ripe(entry):
-                continue
-            del self._imu.items[key]
-            stamp, rod = key
-            if mag is not None:
-                del self._mag.items[key]
-                self._release(codec.imu_topics[rod][1], stamp)
-            gyro, accel = entry[0]
-            field = None if mag is None else mag[0]
-            topic = codec.imu_topics[rod][0]
-            handed.append((codec.make_imu(stamp, rod, gyro, accel, field), topic, stamp))
-        for key in [k for k, v in self._mag.items.items() if ripe(v) and k not in self._imu.items]:
-            # A magnetometer reading without its IMU message carries nothing usable.
-            del self._mag.items[key]
-            self._release(codec.imu_topics[key[1]][1], key[0])
-        waiting = [
-            k[0]
-            for half, other in ((self._color, self._depth), (self._depth, self._color))
-            for k, v in half.items.items()
-            if k not in other.items and not ripe(v)
-        ]
-        frames_until = min(waiting, default=None)
-        for key in sorted(self._color.items):
-            if frames_until is not None and key[0] > frames_until:
-                break
-            if key in self._depth.items:
-                rgb, depth = self._color.items.pop(key)[0], self._depth.items.pop(key)[0]
-                try:
-                    frame = codec.make_frame(key[0], rgb, depth)
-                except MessageError as err:
-                    self.on_skip("undecodable", DEPTH_TOPIC, key[0], str(err))
-                    continue
-                handed.append((frame, COLOR_TOPIC, key[0]))
-                self._release(DEPTH_TOPIC, key[0])
-        for pending, partner, topic, other in (
-            (self._color, self._depth, COLOR_TOPIC, "no depth image"),
-            (self._depth, self._color, DEPTH_TOPIC, "no colour image"),
-        ):
-            for key in [k for k, v in pending.items.items() if ripe(v) and k not in partner.items]:
-                del pending.items[key]
-                self.on_skip("unpaired", topic, key[0], other)
-                self._release(topic, key[0])
+        for kind in self.codec.topics.kinds:
+            if kind.pairing is not None:
+                self._take_pairs(kind, ripe, handed)
         truth = None
         for key in sorted(self._truth_state.items):
             if key not in self._truth_poses.items:
                 if ripe(self._truth_state.items[key]):
                     del self._truth_state.items[key]
-                    self.on_skip("unpaired", TRUTH_STATE_TOPIC, key[0], "no rod poses")
+                    self.on_skip("unpaired", m.TRUTH_STATE_TOPIC, key[0], "no rod poses")
                 continue
             state = self._truth_state.items.pop(key)[0]
             poses = self._truth_poses.items.pop(key)[0]
             try:
-                truth = codec.decode_truth(state, poses)
+                truth = self.codec.decode_truth(state, poses)
             except MessageError as err:
-                self.on_skip("undecodable", TRUTH_STATE_TOPIC, key[0], str(err))
+                self.on_skip("undecodable", m.TRUTH_STATE_TOPIC, key[0], str(err))
         for key in [k for k, v in self._truth_poses.items.items() if ripe(v)]:
             del self._truth_poses.items[key]
         for _, topic, stamp in handed:
             self._release(topic, stamp)
-        handed.sort(key=lambda h: (h[0].t, _KIND_ORDER[type(h[0])], getattr(h[0], "rod", 0)))
+        order = self._order
+        handed.sort(key=lambda h: (h[0].t, order[type(h[0])], getattr(h[0], "rod", 0)))
         estimate, self._estimate = self._estimate, None
         return Assembled([h[0] for h in handed], truth, estimate)
+
+    def _take_pairs(
+        self,
+        kind: SensorKind,
+        ripe: Callable[[tuple[Any, float]], bool],
+        handed: list[tuple[Sample, str, int]],
+    ) -> None:
+        """The samples of a paired kind whose halves are both in, or that waited long
+        enough, into ``handed``; lone halves that waited long enough are given up."""
+        assert kind.pairing is not None
+        pairing, topics = kind.pairing, self.codec.topics
+        first, second = self._halves[kind.name]
+        # A half still waiting for its other half holds back the later samples of its
+        # rod, so that each stream is handed out in time order across calls.
+        held: dict[int, int] = {}  # rod -> oldest waiting stamp
+        for (stamp, rod), entry in [*first.items.items(), *second.items.items()]:
+            if (stamp, rod) not in first.items or (stamp, rod) not in second.items:
+                if not ripe(entry) and stamp < held.get(rod, stamp + 1):
+                    held[rod] = stamp
+        for key in sorted(first.items):
+            stamp, rod = key
+            other = second.items.get(key)
+            if rod in held and stamp > held[rod]:
+                continue
+            if other is None and (pairing.lone_first is not None or not ripe(first.items[key])):
+                continue
+            value = first.items.pop(key)[0]
+            if other is not None:
+                del second.items[key]
+            try:
+                second_value = None if other is None else other[0]
+                sample = pairing.combine(self.codec, stamp, rod, value, second_value)
+            except MessageError as err:
+                self.on_skip("undecodable", topics.topic(kind.name, 1, rod), stamp, str(err))
+                continue
+            if other is not None:
+                self._release(topics.topic(kind.name, 1, rod), stamp)
+            handed.append((sample, topics.topic(kind.name, 0, rod), stamp))
+        for channel, (half, partner, reason) in enumerate(
+            ((first, second, pairing.lone_first), (second, first, pairing.lone_second))
+        ):
+            if channel == 0 and reason is None:
+                continue  # combined alone above
+            for key in [k for k, v in half.items.items() if ripe(v) and k not in partner.items]:
+                del half.items[key]
+                topic = topics.topic(kind.name, channel, key[1])
+                if reason is not None:
+                    self.on_skip("unpaired", topic, key[0], reason)
+                self._release(topic, key[0])
 
     def _release(self, topic: str, stamp: int) -> None:
         """``"sort"``: a message handed out (or given up) on ``topic`` raises its floor."""

@@ -1,7 +1,9 @@
 """Samples, commands, ground truth and estimates to ROS 2 messages and back, for one robot.
 
 Everything that names a rod, a cable or a node goes through the robot description,
-so the same codec serves the bag writer, the bag reader and (later) the robot link.
+so the same codec serves the bag writer, the bag reader and the robot link. Samples are
+encoded and decoded by their kind (:mod:`hardware.bag.kinds`); the codec is the context
+their encoders and decoders work in.
 Decoding validates what it reads: a wrong size, an unknown name or a value that is not
 finite raises :class:`MessageError`, which the callers count or report with the topic
 and time.
@@ -18,17 +20,14 @@ import yaml
 from numpy.typing import NDArray
 
 from hardware.bag import messages as m
+from hardware.bag.kinds import TopicTable
 from tensegrity_gym.model.description import dump_robot
 from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.kinematics import rod_axes, rod_centres, rod_quaternion_from_axis
 from tensegrity_gym.model.protocols import SensorCalibration
 from tensegrity_gym.model.samples import (
-    AhrsSample,
-    CableLengthSample,
     ContactSample,
-    EncoderSample,
     GroundTruth,
-    ImuSample,
     RgbdFrame,
     UwbRangeSample,
     ns_to_seconds,
@@ -37,15 +36,15 @@ from tensegrity_gym.model.samples import (
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
 
+    from hardware.bag.messages import Raw
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.samples import Sample
 
 __all__ = ["Encoded", "MessageError", "RobotCodec"]
 
 Encoded = tuple[str, bytes]
-Raw = bytes | memoryview
-Vec = NDArray[np.float64]
 """(topic, CDR bytes)."""
+Vec = NDArray[np.float64]
 
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
@@ -72,7 +71,7 @@ class RobotCodec:
     def __init__(self, description: RobotDescription) -> None:
         d = description
         self.description = d
-        self.topics = m.TopicTable.for_robot(d)
+        self.topics = TopicTable(d)
         self.store = m.typestore()
         t = self.store.types
         self._Time, self._Header = t["builtin_interfaces/msg/Time"], t["std_msgs/msg/Header"]
@@ -89,39 +88,34 @@ class RobotCodec:
         self._cable_index = {name: k for k, name in enumerate(self.cable_names)}
         self._actuated_index = {name: k for k, name in enumerate(self.actuated_names)}
         self.n_modules = d.n_nodes + len(d.anchors)
-        self.imu_topics = [
-            (self.topics.rod_topic("imu_raw", r), self.topics.rod_topic("imu_mag", r))
-            for r in range(d.n_rods)
-        ]
-        self._ahrs_topics = [self.topics.rod_topic("ahrs", r) for r in range(d.n_rods)]
 
     # ------------------------------------------------------------------ helpers
 
-    def _header(self, t: float, frame_id: str = "") -> Any:
+    def header(self, t: float, frame_id: str = "") -> Any:
         sec, nanosec = m.stamp(t)
         return self._Header(stamp=self._Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
 
-    def _serialize(self, msg: Any, msgtype: str) -> bytes:
+    def serialize(self, msg: Any, msgtype: str) -> bytes:
         return bytes(self.store.serialize_cdr(msg, msgtype))
 
     def _points(self, xyz: NDArray[np.float64], kind: Any) -> list[Any]:
         return [kind(x=float(a), y=float(b), z=float(c)) for a, b, c in np.asarray(xyz)]
 
-    def _joint_state(self, t: float, names: Sequence[str], values: NDArray[np.float64]) -> bytes:
+    def joint_state(self, t: float, names: Sequence[str], values: NDArray[np.float64]) -> bytes:
         msg = self.store.types[m.JOINT_STATE](
-            header=self._header(t),
+            header=self.header(t),
             name=list(names),
             position=np.asarray(values, dtype=np.float64),
             velocity=np.empty(0),
             effort=np.empty(0),
         )
-        return self._serialize(msg, m.JOINT_STATE)
+        return self.serialize(msg, m.JOINT_STATE)
 
-    def _image(self, t: float, encoding: str, pixels: NDArray[Any], pixel_bytes: int) -> bytes:
+    def image(self, t: float, encoding: str, pixels: NDArray[Any], pixel_bytes: int) -> bytes:
         """A sensor_msgs/Image of (H, W[, C]) pixels, little endian, rows packed."""
         h, w = pixels.shape[:2]
         msg = self.store.types[m.IMAGE](
-            header=self._header(t, CAMERA_FRAME),
+            header=self.header(t, CAMERA_FRAME),
             height=h,
             width=w,
             encoding=encoding,
@@ -129,7 +123,7 @@ class RobotCodec:
             step=pixel_bytes * w,
             data=pixels.view(np.uint8).reshape(-1),
         )
-        return self._serialize(msg, m.IMAGE)
+        return self.serialize(msg, m.IMAGE)
 
     def _pose_array(self, t: float, centres: Vec, quats: Vec) -> bytes:
         poses = [
@@ -141,8 +135,8 @@ class RobotCodec:
             )
             for p, q in zip(centres, quats, strict=True)
         ]
-        msg = self.store.types[m.POSE_ARRAY](header=self._header(t, WORLD_FRAME), poses=poses)
-        return self._serialize(msg, m.POSE_ARRAY)
+        msg = self.store.types[m.POSE_ARRAY](header=self.header(t, WORLD_FRAME), poses=poses)
+        return self.serialize(msg, m.POSE_ARRAY)
 
     def _state(
         self,
@@ -155,7 +149,7 @@ class RobotCodec:
         reinitialised: bool = False,
     ) -> bytes:
         msg = self.store.types[m.STATE](
-            header=self._header(t, WORLD_FRAME),
+            header=self.header(t, WORLD_FRAME),
             node_positions=self._points(nodes, self._Point),
             node_velocities=self._points(velocities, self._Vector3),
             center_of_mass=self._Point(x=float(com[0]), y=float(com[1]), z=float(com[2])),
@@ -163,7 +157,7 @@ class RobotCodec:
             healthy=bool(healthy),
             reinitialised=bool(reinitialised),
         )
-        return self._serialize(msg, m.STATE)
+        return self.serialize(msg, m.STATE)
 
     # ------------------------------------------------------------------ encoding
 
@@ -178,7 +172,7 @@ class RobotCodec:
         p = np.zeros((3, 4))
         p[:, :3] = k
         info = self.store.types[m.CAMERA_INFO](
-            header=self._header(t, CAMERA_FRAME),
+            header=self.header(t, CAMERA_FRAME),
             height=cam.height,
             width=cam.width,
             distortion_model="plumb_bob",
@@ -193,7 +187,7 @@ class RobotCodec:
             ),
         )
         calib = self.store.types[m.CALIBRATION](
-            header=self._header(t, WORLD_FRAME),
+            header=self.header(t, WORLD_FRAME),
             anchors=self._points(np.asarray(calibration.anchors).reshape(-1, 3), self._Point),
             n_modules=int(calibration.uwb_offsets.shape[0]),
             uwb_offsets=np.asarray(calibration.uwb_offsets, dtype=np.float64).reshape(-1),
@@ -201,73 +195,31 @@ class RobotCodec:
         )
         run_text = yaml.safe_dump(dict(run_info), sort_keys=True)
         return [
-            ("/robot_description", self._serialize(string(data=dump_robot(d)), m.STRING)),
-            ("/tensegrity/run_info", self._serialize(string(data=run_text), m.STRING)),
-            ("/tensegrity/calibration", self._serialize(calib, m.CALIBRATION)),
-            ("/camera/camera_info", self._serialize(info, m.CAMERA_INFO)),
+            (m.DESCRIPTION_TOPIC, self.serialize(string(data=dump_robot(d)), m.STRING)),
+            (m.RUN_INFO_TOPIC, self.serialize(string(data=run_text), m.STRING)),
+            (m.CALIBRATION_TOPIC, self.serialize(calib, m.CALIBRATION)),
+            (m.CAMERA_INFO_TOPIC, self.serialize(info, m.CAMERA_INFO)),
         ]
 
     def encode_sample(self, sample: Sample) -> list[Encoded]:
-        if isinstance(sample, ImuSample):
-            raw_topic, mag_topic = self.imu_topics[sample.rod]
-            frame = self.rod_names[sample.rod]
-            return [
-                (raw_topic, m.encode_imu(sample.t, frame, gyro=sample.gyro, accel=sample.accel)),
-                (mag_topic, m.encode_magnetic_field(sample.t, frame, sample.mag)),
-            ]
-        if isinstance(sample, AhrsSample):
-            frame = self.rod_names[sample.rod]
-            raw = m.encode_imu(sample.t, frame, orientation=sample.quaternion)
-            return [(self._ahrs_topics[sample.rod], raw)]
-        if isinstance(sample, EncoderSample):
-            raw = self._joint_state(sample.t, self.actuated_names, sample.rest_lengths)
-            return [("/motors/rest_lengths", raw)]
-        if isinstance(sample, CableLengthSample):
-            return [
-                ("/cables/lengths", self._joint_state(sample.t, self.cable_names, sample.lengths))
-            ]
-        if isinstance(sample, UwbRangeSample):
-            uwb_range = self.store.types["tensegrity_msgs/msg/UwbRange"]
-            ranges = []
-            for t, (i, j), r in zip(sample.times, sample.pairs, sample.ranges, strict=True):
-                sec, nanosec = m.stamp(float(t))
-                ranges.append(
-                    uwb_range(
-                        stamp=self._Time(sec=sec, nanosec=nanosec),
-                        initiator=int(i),
-                        responder=int(j),
-                        range=float(r),
-                    )
-                )
-            msg = self.store.types[m.UWB_RANGES](header=self._header(sample.t), ranges=ranges)
-            return [("/uwb/ranges", self._serialize(msg, m.UWB_RANGES))]
-        if isinstance(sample, ContactSample):
-            msg = self.store.types[m.CONTACTS](
-                header=self._header(sample.t),
-                nodes=list(self.node_names),
-                in_contact=np.asarray(sample.in_contact, dtype=np.bool_),
-            )
-            return [("/contacts", self._serialize(msg, m.CONTACTS))]
-        if isinstance(sample, RgbdFrame):
-            rgb = np.ascontiguousarray(sample.rgb, dtype=np.uint8)
-            depth = np.ascontiguousarray(sample.depth, dtype="<f4")
-            return [
-                ("/camera/color/image_raw", self._image(sample.t, "rgb8", rgb, 3)),
-                ("/camera/depth/image_raw", self._image(sample.t, "32FC1", depth, 4)),
-            ]
-        raise TypeError(f"no message for a sample of type {type(sample).__name__}")
+        """The messages of one sample, by its kind in the topic table; TypeError if its
+        class has no kind."""
+        kind = self.topics.kind_of(sample)
+        rod = int(getattr(sample, "rod", 0)) if kind.per_rod else 0
+        payloads = kind.encode(self, sample)
+        return [(self.topics.topic(kind.name, c, rod), raw) for c, raw in enumerate(payloads)]
 
     def encode_command(self, t: float, targets: NDArray[np.float64]) -> Encoded:
-        return ("/commands/rest_length_targets", self._joint_state(t, self.actuated_names, targets))
+        return (m.COMMAND_TOPIC, self.joint_state(t, self.actuated_names, targets))
 
     def encode_truth(self, truth: GroundTruth) -> list[Encoded]:
         return [
             (
-                "/ground_truth/rod_poses",
+                m.TRUTH_POSES_TOPIC,
                 self._pose_array(truth.t, truth.rod_positions, truth.rod_quaternions),
             ),
             (
-                "/ground_truth/state",
+                m.TRUTH_STATE_TOPIC,
                 self._state(
                     truth.t,
                     truth.node_positions,
@@ -288,9 +240,9 @@ class RobotCodec:
             with np.errstate(invalid="ignore", divide="ignore"):
                 quats = rod_quaternion_from_axis(rod_axes(x, rod_nodes))
         return [
-            ("/estimate/rod_poses", self._pose_array(estimate.t, centres, quats)),
+            (m.ESTIMATE_POSES_TOPIC, self._pose_array(estimate.t, centres, quats)),
             (
-                "/estimate/state",
+                m.ESTIMATE_STATE_TOPIC,
                 self._state(
                     estimate.t,
                     x,
@@ -517,27 +469,6 @@ class RobotCodec:
             camera_intrinsics=intrinsics,
             camera_pose=pose,
         )
-
-    def make_imu(
-        self,
-        ns: int,
-        rod: int,
-        gyro: NDArray[np.float64],
-        accel: NDArray[np.float64],
-        mag: NDArray[np.float64] | None,
-    ) -> ImuSample:
-        """An ImuSample; ``mag`` None (no magnetometer message) reads as NaN."""
-        field = mag if mag is not None else np.full(3, np.nan)
-        return ImuSample(ns_to_seconds(ns), rod, accel, gyro, field)
-
-    def make_ahrs(self, ns: int, rod: int, quaternion: NDArray[np.float64]) -> AhrsSample:
-        return AhrsSample(ns_to_seconds(ns), rod, quaternion)
-
-    def make_encoder(self, ns: int, values: NDArray[np.float64]) -> EncoderSample:
-        return EncoderSample(ns_to_seconds(ns), values)
-
-    def make_cable_lengths(self, ns: int, values: NDArray[np.float64]) -> CableLengthSample:
-        return CableLengthSample(ns_to_seconds(ns), values)
 
     def make_frame(self, ns: int, rgb: NDArray[np.uint8], depth: NDArray[np.float32]) -> RgbdFrame:
         if rgb.shape[:2] != depth.shape:

@@ -1,10 +1,11 @@
-"""ROS 2 messages of a tensegrity robot: the topic table, the ``tensegrity_msgs`` types,
-and the conversions between samples and messages.
+"""ROS 2 messages of a tensegrity robot: the topics that carry no sample, the
+``tensegrity_msgs`` types, and fast CDR codecs for the IMU messages.
 
 Standard types carry what they can (sensor_msgs/Imu, MagneticField, JointState, Image,
 CameraInfo, geometry_msgs/PoseArray, std_msgs/String); a few custom ``tensegrity_msgs``
-types carry the rest. Topic names come from the robot description (rod names), so a
-robot's own bag needs nothing of this package to be readable here. The README holds the
+types carry the rest. The sensor topics are declared with their sample kinds
+(:mod:`hardware.bag.kinds`); their names come from the robot description (rod names), so
+a robot's own bag needs nothing of this package to be readable here. The README holds the
 same table for people who write bags themselves.
 
 ``sensor_msgs/Imu`` and ``sensor_msgs/MagneticField`` (most of a run's messages) are
@@ -15,32 +16,27 @@ the generic serialiser, and the tests check that both give the same bytes and va
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from tensegrity_gym.model.samples import GROUND_TRUTH, seconds_to_ns
+from tensegrity_gym.model.samples import seconds_to_ns
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable
-
     from rosbags.typesys.store import Typestore
 
-    from tensegrity_gym.model.description import RobotDescription
-
 __all__ = [
+    "COMMAND_TOPIC",
     "CUSTOM_MESSAGES",
     "FIXED_TOPICS",
-    "TOPIC_KINDS",
-    "TopicTable",
+    "HEADER_TOPICS",
+    "Raw",
     "decode_imu",
     "decode_magnetic_field",
     "encode_imu",
     "encode_magnetic_field",
-    "sample_kinds_of_topics",
     "stamp",
     "stamp_ns",
     "typestore",
@@ -52,6 +48,9 @@ _MSG_DIR = Path(__file__).parent / "tensegrity_msgs" / "msg"
 CUSTOM_MESSAGES: dict[str, str] = {
     f"tensegrity_msgs/msg/{f.stem}": f.read_text() for f in sorted(_MSG_DIR.glob("*.msg"))
 }
+
+Raw = bytes | memoryview
+"""A message's CDR bytes, as read from a bag or the wire."""
 
 STRING = "std_msgs/msg/String"
 IMU = "sensor_msgs/msg/Imu"
@@ -65,56 +64,35 @@ CONTACTS = "tensegrity_msgs/msg/ContactFlags"
 STATE = "tensegrity_msgs/msg/TensegrityState"
 CALIBRATION = "tensegrity_msgs/msg/SensorCalibration"
 
-# topic -> (message type, what it carries); per-rod IMU topics are added per robot.
+DESCRIPTION_TOPIC = "/robot_description"
+RUN_INFO_TOPIC = "/tensegrity/run_info"
+CALIBRATION_TOPIC = "/tensegrity/calibration"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+COMMAND_TOPIC = "/commands/rest_length_targets"
+TRUTH_POSES_TOPIC = "/ground_truth/rod_poses"
+TRUTH_STATE_TOPIC = "/ground_truth/state"
+ESTIMATE_POSES_TOPIC = "/estimate/rod_poses"
+ESTIMATE_STATE_TOPIC = "/estimate/state"
+
+HEADER_TOPICS = (DESCRIPTION_TOPIC, RUN_INFO_TOPIC, CALIBRATION_TOPIC, CAMERA_INFO_TOPIC)
+"""What makes a bag (or a robot on the link) self-contained, read before anything else."""
+
+# topic -> (message type, what it carries): the topics that carry no sample. The sensor
+# topics are the sensor kinds' (hardware.bag.kinds), added per robot by its TopicTable.
 FIXED_TOPICS: dict[str, tuple[str, str]] = {
-    "/robot_description": (STRING, "the robot description, YAML (once, first)"),
-    "/tensegrity/run_info": (STRING, "YAML: control_period (s), env, seed, policy, ..."),
-    "/tensegrity/calibration": (CALIBRATION, "UWB anchors and offsets, camera pose"),
-    "/camera/camera_info": (CAMERA_INFO, "camera intrinsics (k), width, height"),
-    "/motors/rest_lengths": (JOINT_STATE, "encoders: rest lengths of the actuated cables (m)"),
-    "/cables/lengths": (JOINT_STATE, "cable-length sensors: every cable's length (m)"),
-    "/uwb/ranges": (UWB_RANGES, "one UWB broadcast round"),
-    "/contacts": (CONTACTS, "endcap-ground contact flags"),
-    "/camera/color/image_raw": (IMAGE, "RGB frame, rgb8"),
-    "/camera/depth/image_raw": (IMAGE, "depth frame, 32FC1 metres, 0 where no return"),
-    "/commands/rest_length_targets": (
+    DESCRIPTION_TOPIC: (STRING, "the robot description, YAML (once, first)"),
+    RUN_INFO_TOPIC: (STRING, "YAML: control_period (s), env, seed, policy, ..."),
+    CALIBRATION_TOPIC: (CALIBRATION, "UWB anchors and offsets, camera pose"),
+    CAMERA_INFO_TOPIC: (CAMERA_INFO, "camera intrinsics (k), width, height"),
+    COMMAND_TOPIC: (
         JOINT_STATE,
         "the command of each control period: actuated cables' rest-length targets (m)",
     ),
-    "/ground_truth/rod_poses": (POSE_ARRAY, "true rod poses (centre, body z along the rod)"),
-    "/ground_truth/state": (STATE, "true node positions and velocities, CoM, rest lengths"),
-    "/estimate/rod_poses": (POSE_ARRAY, "estimated rod poses"),
-    "/estimate/state": (STATE, "the estimator's output"),
+    TRUTH_POSES_TOPIC: (POSE_ARRAY, "true rod poses (centre, body z along the rod)"),
+    TRUTH_STATE_TOPIC: (STATE, "true node positions and velocities, CoM, rest lengths"),
+    ESTIMATE_POSES_TOPIC: (POSE_ARRAY, "estimated rod poses"),
+    ESTIMATE_STATE_TOPIC: (STATE, "the estimator's output"),
 }
-
-ROD_TOPICS: dict[str, tuple[str, str]] = {
-    "/{rod}/imu/data_raw": (IMU, "accelerometer (m/s^2) and gyro (rad/s), body frame"),
-    "/{rod}/imu/mag": (MAGNETIC_FIELD, "magnetometer (T), body frame"),
-    "/{rod}/imu/data": (IMU, "the on-board AHRS orientation, body to world"),
-}
-
-TOPIC_KINDS: dict[str, str] = {
-    "/{rod}/imu/data_raw": "imu",
-    "/{rod}/imu/data": "ahrs",
-    "/motors/rest_lengths": "encoders",
-    "/cables/lengths": "cable_lengths",
-    "/uwb/ranges": "uwb",
-    "/contacts": "contacts",
-    "/camera/depth/image_raw": "rgbd",
-    "/ground_truth/state": GROUND_TRUTH,
-}
-"""The topic that carries each sample kind (:data:`SAMPLE_KINDS`) and ground truth."""
-
-
-def sample_kinds_of_topics(topics: Iterable[str], description: RobotDescription) -> frozenset[str]:
-    """The sample kinds (and ``"ground_truth"``) a set of topics carries."""
-    present = set(topics)
-    kinds = set()
-    for pattern, kind in TOPIC_KINDS.items():
-        names = {pattern.format(rod=rod.name) for rod in description.rods}
-        if names & present:
-            kinds.add(kind)
-    return frozenset(kinds)
 
 
 @cache
@@ -126,33 +104,6 @@ def typestore() -> Typestore:
         types.update(get_types_from_msg(text, name))
     store.register(types)
     return store
-
-
-@dataclass(frozen=True)
-class TopicTable:
-    """Every topic of one robot's bag: name -> message type, and the per-rod lookups."""
-
-    types: dict[str, str]
-    imu_raw: dict[str, int]
-    """IMU topic -> rod index."""
-    imu_mag: dict[str, int]
-    ahrs: dict[str, int]
-
-    @classmethod
-    def for_robot(cls, description: RobotDescription) -> TopicTable:
-        types = {topic: kind for topic, (kind, _) in FIXED_TOPICS.items()}
-        lookups: list[dict[str, int]] = [{}, {}, {}]
-        for r, rod in enumerate(description.rods):
-            for lookup, (pattern, (kind, _)) in zip(lookups, ROD_TOPICS.items(), strict=True):
-                topic = pattern.format(rod=rod.name)
-                types[topic] = kind
-                lookup[topic] = r
-        return cls(types, *lookups)
-
-    def rod_topic(self, which: str, rod: int) -> str:
-        """The topic of rod ``rod``'s ``which`` stream (``imu_raw``, ``imu_mag``, ``ahrs``)."""
-        lookup: dict[str, int] = getattr(self, which)
-        return next(t for t, r in lookup.items() if r == rod)
 
 
 # ---------------------------------------------------------------------- stamps

@@ -47,6 +47,7 @@ from rosbags.rosbag2 import ReaderError
 from hardware.bag import messages as m
 from hardware.bag.assembler import SampleAssembler
 from hardware.bag.codec import MessageError, RobotCodec, run_info_from_text
+from hardware.bag.kinds import fixed_topic_types
 from hardware.bag.salvage import (
     MAGIC,
     LostSpan,
@@ -75,13 +76,7 @@ __all__ = ["BagError", "BagPeriod", "BagReader", "LostSpan", "find_bags", "read_
 
 log = logging.getLogger(__name__)
 
-COMMAND_TOPIC = "/commands/rest_length_targets"
-_HEADER_TOPICS = (
-    "/robot_description",
-    "/tensegrity/run_info",
-    "/tensegrity/calibration",
-    "/camera/camera_info",
-)
+COMMAND_TOPIC = m.COMMAND_TOPIC
 
 
 class BagError(ValueError):
@@ -196,7 +191,7 @@ class BagReader:
             for span in self._known_lost:
                 self._damaged(span)
             self._connections: list[Connection] = list(self._storage.connections)
-            self._check_types({t: kind for t, (kind, _) in m.FIXED_TOPICS.items()})
+            self._check_types(fixed_topic_types())
             header = self._read_header()
             self.description = self._description(header, description)
             self.codec = RobotCodec(self.description)
@@ -238,7 +233,7 @@ class BagReader:
 
     def _read_header(self) -> dict[str, bytes]:
         found: dict[str, bytes] = {}
-        wanted = set(_HEADER_TOPICS)
+        wanted = set(m.HEADER_TOPICS)
         it = self._messages(wanted)
         for topic, _, raw in it:
             found.setdefault(topic, raw)
@@ -253,21 +248,22 @@ class BagReader:
     ) -> RobotDescription:
         if given is not None:
             return given
-        raw = header.get("/robot_description")
+        topic = m.DESCRIPTION_TOPIC
+        raw = header.get(topic)
         if raw is None:
             raise BagError(
-                f"{self.path}: no /robot_description message{self._lost_note('/robot_description')}"
+                f"{self.path}: no {topic} message{self._lost_note(topic)}"
                 "; pass the robot (description=..., or --robot on the command line)"
             )
         store = m.typestore()
         try:
             message: Any = store.deserialize_cdr(raw, m.STRING)
             text = str(message.data)
-            return loads_robot(text, f"{self.path}:/robot_description")
+            return loads_robot(text, f"{self.path}:{topic}")
         except DescriptionError as err:
             raise BagError(str(err)) from None
         except Exception as err:
-            raise BagError(f"{self.path}: /robot_description cannot be decoded: {err}") from None
+            raise BagError(f"{self.path}: {topic} cannot be decoded: {err}") from None
 
     def _check_types(self, types: dict[str, str]) -> None:
         for conn in self._connections:
@@ -286,26 +282,26 @@ class BagReader:
                     )
 
     def _run_info(self, header: dict[str, bytes]) -> dict[str, Any]:
-        raw = header.get("/tensegrity/run_info")
+        raw = header.get(m.RUN_INFO_TOPIC)
         if raw is None:
             return {}
         try:
             return run_info_from_text(self.codec.deserialize(raw, m.STRING).data)
         except MessageError as err:
-            raise BagError(f"{self.path}: /tensegrity/run_info: {err}") from None
+            raise BagError(f"{self.path}: {m.RUN_INFO_TOPIC}: {err}") from None
 
     def _calibration(self, header: dict[str, bytes]) -> SensorCalibration:
-        raw = header.get("/tensegrity/calibration")
+        raw = header.get(m.CALIBRATION_TOPIC)
         if raw is None:
             raise BagError(
-                f"{self.path}: no /tensegrity/calibration message (UWB anchors and offsets, "
+                f"{self.path}: no {m.CALIBRATION_TOPIC} message (UWB anchors and offsets, "
                 "camera pose); an estimator cannot run without it"
-                f"{self._lost_note('/tensegrity/calibration')}"
+                f"{self._lost_note(m.CALIBRATION_TOPIC)}"
             )
         try:
-            return self.codec.decode_calibration(raw, header.get("/camera/camera_info"))
+            return self.codec.decode_calibration(raw, header.get(m.CAMERA_INFO_TOPIC))
         except MessageError as err:
-            raise BagError(f"{self.path}: /tensegrity/calibration: {err}") from None
+            raise BagError(f"{self.path}: {m.CALIBRATION_TOPIC}: {err}") from None
 
     def _control_period(self) -> float:
         value = self.run_info.get("control_period")
@@ -342,7 +338,7 @@ class BagReader:
 
     @property
     def has_truth(self) -> bool:
-        return "/ground_truth/state" in self.topics
+        return m.TRUTH_STATE_TOPIC in self.topics
 
     @property
     def message_count(self) -> int:
@@ -405,7 +401,7 @@ class BagReader:
     def periods(self) -> Iterator[BagPeriod]:
         """The start period, then one per command, in time order."""
         topics = self.codec.topics
-        known = set(topics.types) - set(_HEADER_TOPICS)
+        known = set(topics.types) - set(m.HEADER_TOPICS)
         self.skipped.clear()  # counts are of this pass
         self.unknown_topics.clear()
         self._counted.clear()

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hardware.bag.messages import sample_kinds_of_topics
+from hardware.bag.kinds import sample_kinds_of_topics
 from hardware.bag.reader import BagReader
 from tensegrity_gym.model.protocols import StepResult
 from tensegrity_gym.model.samples import EncoderSample, RgbdFrame

@@ -61,12 +61,6 @@ __all__ = ["DriverTimeouts", "LinkError", "ZenohDriver"]
 
 log = logging.getLogger(__name__)
 
-_HEADER_TOPICS = (
-    "/robot_description",
-    "/tensegrity/run_info",
-    "/tensegrity/calibration",
-    "/camera/camera_info",
-)
 RESET_PERIODS = 5
 """Control periods at rest whose samples ``reset`` hands to the estimator."""
 
@@ -300,7 +294,7 @@ class ZenohDriver:
             if topic is None or topic not in topics:
                 self._skip("unknown_topic", key, None, "not in the robot's topic table")
                 continue
-            if topic in _HEADER_TOPICS:
+            if topic in m.HEADER_TOPICS:
                 self._header[topic] = raw
                 continue
             if topic in (COMMAND_TOPIC, HEARTBEAT_TOPIC):
@@ -364,13 +358,14 @@ class ZenohDriver:
         return self._calibration
 
     def _read_header(self) -> None:
-        raw = self._header.get("/robot_description")
+        raw = self._header.get(m.DESCRIPTION_TOPIC)
         if raw is not None:
             try:
                 text = self.codec.deserialize(raw, m.STRING).data
-                theirs = loads_robot(text, f"{self.address}:/robot_description")
+                theirs = loads_robot(text, f"{self.address}:{m.DESCRIPTION_TOPIC}")
             except (MessageError, DescriptionError) as err:
-                raise LinkError(f"robot at {self.address}: bad /robot_description: {err}") from None
+                why = f"bad {m.DESCRIPTION_TOPIC}: {err}"
+                raise LinkError(f"robot at {self.address}: {why}") from None
             if theirs.name != self.description.name or theirs.n_cables != self.description.n_cables:
                 raise LinkError(
                     f"the robot at {self.address} is {theirs.name!r} ({theirs.n_cables} cables); "
@@ -379,7 +374,7 @@ class ZenohDriver:
         if self._given_calibration is None:
             try:
                 self._calibration = self.codec.decode_calibration(
-                    self._header["/tensegrity/calibration"], self._header.get("/camera/camera_info")
+                    self._header[m.CALIBRATION_TOPIC], self._header.get(m.CAMERA_INFO_TOPIC)
                 )
             except MessageError as err:
                 raise LinkError(f"robot at {self.address}: bad calibration: {err}") from None
@@ -396,7 +391,7 @@ class ZenohDriver:
         self.connect()
         self._begin_episode()
         t = self.timeouts
-        wanted = "/tensegrity/calibration" if self._given_calibration is None else None
+        wanted = m.CALIBRATION_TOPIC if self._given_calibration is None else None
         self._wait_for(
             f"{wanted or 'robot description'} message",
             lambda: wanted is None or wanted in self._header,

@@ -28,14 +28,14 @@ import numpy as np
 from hardware.bag.codec import MessageError, RobotCodec
 from hardware.link.safety import Watchdog, check_fields
 from hardware.link.wire import COMMAND_TOPIC, HEARTBEAT_TOPIC, LinkAddress, LinkError, open_session
-from tensegrity_gym.model.samples import UwbRangeSample
 from tensegrity_gym.sim.backend import SimBackend
 
 if TYPE_CHECKING:
-    from collections.abc import Collection
+    from collections.abc import Collection, Sequence
 
     from numpy.typing import NDArray
 
+    from hardware.bag.kinds import SensorKind, TopicTable
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.samples import Sample
 
@@ -101,24 +101,21 @@ class EmulatorStats:
     """Ticks that started late because the previous one took longer than a tick."""
 
 
-SENSOR_TOPICS = (
-    "/motors/rest_lengths",
-    "/cables/lengths",
-    "/uwb/ranges",
-    "/contacts",
-    "/camera/color/image_raw",
-    "/camera/depth/image_raw",
-)
-"""Sensor topics besides the per-rod IMU topics."""
+def sensor_streams(topics: TopicTable, rod_names: Sequence[str]) -> dict[str, str]:
+    """Sensor topic -> the stream it belongs to; a dropout silences a whole stream.
 
-
-def _stream(topic: str) -> str:
-    """The sensor stream a topic belongs to: a rod's IMU topics are one stream, and so
-    are the camera's two images; a dropout silences a whole stream."""
-    parts = topic.strip("/").split("/")
-    if parts[0] == "camera":
-        return "camera"
-    return parts[0] if len(parts) > 2 and parts[1] == "imu" else topic
+    A rod's topics are one stream (its board: IMU and AHRS), named by the rod; the two
+    topics of a paired kind are one, named by their first path segment (``camera``);
+    any other topic is a stream of its own."""
+    streams = {}
+    for topic, (kind, _, rod) in topics.routes.items():
+        if kind.per_rod:
+            streams[topic] = rod_names[rod]
+        elif kind.pairing is not None:
+            streams[topic] = kind.channels[0].pattern.strip("/").split("/")[0]
+        else:
+            streams[topic] = topic
+    return streams
 
 
 class Emulator:
@@ -175,9 +172,9 @@ class Emulator:
         self._session: Any = None
         self._publishers: dict[str, Any] = {}
         self._epoch = -np.inf
-        topics = self.codec.topics
-        sensor_topics = {*topics.imu_raw, *topics.imu_mag, *topics.ahrs, *SENSOR_TOPICS}
-        self._streams = sorted({_stream(t) for t in sensor_topics})
+        rods = [rod.name for rod in description.rods]
+        self._stream_of = sensor_streams(self.codec.topics, rods)
+        self._streams = sorted(set(self._stream_of.values()))
 
     # ------------------------------------------------------------------ wire
 
@@ -191,7 +188,7 @@ class Emulator:
         f = self.faults
         if faulty:
             rng = self._fault_rng
-            if self._dropout_until.get(_stream(topic), -1.0) > now:
+            if self._dropout_until.get(self._stream_of.get(topic, topic), -1.0) > now:
                 self.stats.dropped_in_dropout += 1
                 return
             if f.loss and rng.random() < f.loss:
@@ -279,10 +276,8 @@ class Emulator:
 
     def _stamped(self, sample: Sample) -> Sample:
         """The sample stamped with the robot's clock."""
-        t = sample.t + self._epoch
-        if isinstance(sample, UwbRangeSample):
-            return dataclasses.replace(sample, t=t, times=sample.times + self._epoch)
-        return dataclasses.replace(sample, t=t)
+        kind: SensorKind = self.codec.topics.kind_of(sample)
+        return kind.retime(sample, self._epoch)  # type: ignore[no-any-return]
 
     def _publish_sample(self, sample: Sample, now: float) -> None:
         for topic, raw in self.codec.encode_sample(self._stamped(sample)):

@@ -22,6 +22,8 @@ import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+from hardware.bag.messages import COMMAND_TOPIC
+
 if TYPE_CHECKING:
     import zenoh
 
@@ -33,7 +35,6 @@ __all__ = [
     "open_session",
 ]
 
-COMMAND_TOPIC = "/commands/rest_length_targets"
 HEARTBEAT_TOPIC = "/tensegrity/heartbeat"
 """std_msgs/Header at a fixed rate; the robot holds its motors when they stop."""
 HEARTBEAT_TYPE = "std_msgs/msg/Header"
