@@ -183,7 +183,7 @@ def test_icp_runs_over_a_recorded_bag_and_refuses_one_without_frames(tmp_path, c
     )
     with caplog.at_level(logging.ERROR):
         code = main(["estimate", str(tmp_path / "b"), "--estimator", "icp", "--out", str(out)])
-    assert code == 2 and "needs RGB-D frames" in caplog.text
+    assert code == 2 and "needs rgbd (RGB-D camera frames)" in caplog.text
 
 
 def test_rod_orientations_turn_about_their_axes_as_little_as_possible() -> None:
