@@ -255,7 +255,6 @@ class SpringMassModel:
         rest_start: NDArray[np.float64],
         rest_end: NDArray[np.float64] | None = None,
         *,
-        compiled: bool = True,
         kernel: Kernel | None = None,
     ) -> NDArray[np.float64]:
         """Advance a batch of states by ``duration`` seconds.
@@ -266,11 +265,8 @@ class SpringMassModel:
             rest_start, rest_end: actuated cable rest lengths (m), (m,), at the start
                 and end of the interval; linearly interpolated in between (the motors
                 slew). ``rest_end`` None holds ``rest_start``.
-            compiled: False runs the kernel's own Python source (numba's ``py_func``)
-                over compiled helpers: the same results, bit for bit; kept for callers
-                of the earlier interface, and to step through the kernel's loops.
             kernel: another implementation of the same equations to run instead (the
-                benchmark's plain numpy one); ``compiled`` is then ignored.
+                benchmark's plain numpy one).
 
         Returns:
             The states after ``duration``, same shape as ``states`` (a new array).
@@ -287,8 +283,7 @@ class SpringMassModel:
         if kernel is not None:
             kernel(batch, n, duration / n, rest, self.arrays)
         else:
-            run = _propagate if compiled else _propagate.py_func
-            run(batch, n, duration / n, rest, *self.arrays)
+            _propagate(batch, n, duration / n, rest, *self.arrays)
         return batch[0] if single else batch
 
 
