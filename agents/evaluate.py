@@ -269,7 +269,13 @@ def evaluate_policy(
     seed: int = 1000,
 ) -> list[EpisodeResult]:
     """``episodes`` episodes of ``policy`` under ``condition``, seeds ``seed``, ``seed+1``..."""
-    robot = gym.spec(policy.env_id).kwargs.get("robot", "three_bar")
+    spec_kwargs = gym.spec(policy.env_id).kwargs
+    if spec_kwargs.get("task", "roll") != "roll":
+        raise ValueError(
+            f"{policy.env_id}: evaluate measures progress along a goal heading, the Roll "
+            f"task's; it does not evaluate the {spec_kwargs['task']!r} task yet"
+        )
+    robot = spec_kwargs.get("robot", "three_bar")
     description = load_robot(robot)
     if condition.sensing is not None:
         description = condition.sensing(description)

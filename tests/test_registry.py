@@ -143,3 +143,9 @@ def test_estimate_on_a_bag_without_what_the_estimator_needs_is_one_line(
     assert code == 2
     errors = [r.getMessage() for r in caplog.records if r.levelname == "ERROR"]
     assert len(errors) == 1 and "needs uwb (UWB ranges to anchors" in errors[0], errors
+
+
+def test_evaluate_refuses_a_task_it_cannot_measure_in_one_line() -> None:
+    policy = random_policy("tensegrity_gym/ThreeBarGoTo-v0", 0)
+    with pytest.raises(ValueError, match="does not evaluate the 'goto' task"):
+        evaluate_policy(policy, condition("oracle"), episodes=1)
