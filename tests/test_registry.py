@@ -149,3 +149,17 @@ def test_evaluate_refuses_a_task_it_cannot_measure_in_one_line() -> None:
     policy = random_policy("tensegrity_gym/ThreeBarGoTo-v0", 0)
     with pytest.raises(ValueError, match="does not evaluate the 'goto' task"):
         evaluate_policy(policy, condition("oracle"), episodes=1)
+
+
+def test_the_simulator_says_exactly_the_kinds_it_produces() -> None:
+    from tensegrity_gym.model.description import load_robot
+    from tensegrity_gym.model.samples import GROUND_TRUTH, SAMPLE_KINDS
+
+    backend = SimBackend(load_robot("three_bar"), camera=True)
+    backend.reset(np.random.default_rng(0))
+    d = backend.description
+    samples = backend.step(d.rest_lengths[d.actuated]).samples
+    backend.close()
+    names = {cls: name for name, cls in SAMPLE_KINDS.items()}
+    produced = {names[type(s)] for s in samples}
+    assert backend.sample_kinds() == produced | {GROUND_TRUTH}

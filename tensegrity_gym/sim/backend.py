@@ -11,7 +11,7 @@ import numpy as np
 from tensegrity_gym.model.kinematics import center_of_mass
 from tensegrity_gym.model.lie import quat_multiply
 from tensegrity_gym.model.protocols import SensorCalibration, StepResult
-from tensegrity_gym.model.samples import GROUND_TRUTH, SAMPLE_KINDS, GroundTruth
+from tensegrity_gym.model.samples import GROUND_TRUTH, GroundTruth
 from tensegrity_gym.sim.sensors import (
     CableLengthModel,
     CameraModel,
@@ -32,6 +32,10 @@ if TYPE_CHECKING:
     from tensegrity_gym.sim.world import Snapshot
 
 __all__ = ["SettleError", "SimBackend", "check_sensor_rates", "settled_pose"]
+
+_SIMULATED_KINDS = frozenset(
+    ["imu", "ahrs", "encoders", "cable_lengths", "uwb", "rgbd", "contacts", GROUND_TRUTH]
+)
 
 # A state whose nodes move faster than this, or leave this box, has blown up.
 _MAX_SPEED = 50.0  # m/s
@@ -306,8 +310,9 @@ class SimBackend:
         return StepResult(self._sample({name: [snap] for name in self._schedules}, rng))
 
     def sample_kinds(self) -> frozenset[str]:
-        """Every kind of sample (frames rendered when an estimator asks) and the truth."""
-        return frozenset([*SAMPLE_KINDS, GROUND_TRUTH])
+        """The kinds its sensor models produce (frames rendered when an estimator asks),
+        and the truth; not a kind registered later by a lab for its own robot."""
+        return _SIMULATED_KINDS
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
         if self._rng is None:
