@@ -5,13 +5,13 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from estimation.health import EstimatorHealth, HealthParams
 from estimation.icp.tracker import IcpParams, IcpTracker
 from estimation.oracle import latest_rest_lengths
 from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.kinematics import center_of_mass
+from tensegrity_gym.model.lie import matrix_to_quat
 from tensegrity_gym.model.samples import (
     CableLengthSample,
     RgbdFrame,
@@ -76,9 +76,7 @@ class IcpEstimator:
             com=center_of_mass(self._nodes, d.node_masses),
             rest_lengths=self._rest.copy(),
             rod_quaternions=(
-                Rotation.from_matrix(self.tracker.rotations).as_quat()
-                if self.tracker.nodes is not None
-                else None
+                matrix_to_quat(self.tracker.rotations) if self.tracker.nodes is not None else None
             ),
         )
         return self.health.fill(estimate)
