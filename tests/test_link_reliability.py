@@ -214,3 +214,22 @@ def test_a_silent_listener_fails_the_connect_within_its_timeout() -> None:
         conn.close()
     assert accepted, "the listener was never reached"
     assert driver.timeouts.connect - 0.5 < took < driver.timeouts.connect + 1.5, took
+
+
+def test_encoder_readings_outside_the_motor_range_are_counted() -> None:
+    """A robot reporting rest lengths no motor could have is counted in ``info``
+    (``encoders_out_of_range``), not taken silently."""
+    from hardware.bag.codec import RobotCodec
+    from tests.test_link import THREE_BAR, _encoder_raw, _feed, _fuzz_driver
+
+    driver = _fuzz_driver()
+    codec = RobotCodec(THREE_BAR)
+    lo, hi, _ = THREE_BAR.motor_limits
+    inside = _encoder_raw(codec, 1.0, float(0.5 * (lo[0] + hi[0])))
+    outside = _encoder_raw(codec, 1.01, 2.0)  # m: eight times the motor's longest
+    samples = _feed(driver, [("/motors/rest_lengths", inside), ("/motors/rest_lengths", outside)])
+    assert len(samples) == 2
+    assert driver._link_info(False, False)["encoders_out_of_range"] == THREE_BAR.n_actuated
+    assert THREE_BAR.outside_motor_range(np.full(THREE_BAR.n_actuated, 2.0)) == 6
+    assert THREE_BAR.outside_motor_range(hi + 0.5 * THREE_BAR.sensors.encoder.resolution) == 0
+    driver.close()

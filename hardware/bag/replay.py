@@ -94,11 +94,7 @@ class ReplayBackend:
                 self._count_out_of_range("encoder", s.rest_lengths)
 
     def _count_out_of_range(self, what: str, rest_lengths: NDArray[np.float64]) -> None:
-        lo, hi, _ = self.description.motor_limits
-        tolerance = self.description.sensors.encoder.resolution  # one quantisation step
-        outside = int(
-            np.count_nonzero((rest_lengths < lo - tolerance) | (rest_lengths > hi + tolerance))
-        )
+        outside = self.description.outside_motor_range(rest_lengths)
         if outside:
             self.out_of_range[what] = self.out_of_range.get(what, 0) + outside
 

@@ -170,6 +170,7 @@ class ZenohDriver:
         self._last_frame: RgbdFrame | None = None
         self._encoders: NDArray[np.float64] | None = None
         self._encoders_at = 0.0  # monotonic time the newest reading was collected
+        self._encoders_out_of_range = 0  # readings no motor could give, since reset
         self._last_activity = 0.0  # monotonic time of the newest command
         self._last_sensor = 0.0
         self._last_by_stream: dict[str, float] = {}
@@ -312,6 +313,9 @@ class ZenohDriver:
         for sample in out.samples:
             if isinstance(sample, EncoderSample):
                 self._encoders, self._encoders_at = sample.rest_lengths, now
+                self._encoders_out_of_range += self.description.outside_motor_range(
+                    sample.rest_lengths
+                )
             elif isinstance(sample, RgbdFrame):
                 self._last_frame = sample
         return out.samples
@@ -422,6 +426,7 @@ class ZenohDriver:
         with self._inbox_lock:
             self._oversized = self._overflow = 0
         self._truth, self._encoders = None, None
+        self._encoders_out_of_range = 0
         self._header.clear()  # the robot may have restarted: read its header anew
         self._last_by_stream.clear()
 
@@ -523,6 +528,7 @@ class ZenohDriver:
             "link_quiet_topics": quiet,
             "link_counts": self.link_counts(),
             "command_clipped": self.limiter.clipped,
+            "encoders_out_of_range": self._encoders_out_of_range,
         }
 
     def _send_command(self, targets: NDArray[np.float64]) -> None:

@@ -332,6 +332,14 @@ class RobotDescription:
             np.array([m.max_speed for m in motors]),
         )
 
+    def outside_motor_range(self, rest_lengths: NDArray[np.float64]) -> int:
+        """How many of the actuated rest lengths (m), (m,), lie outside their motor's
+        range by more than one encoder step (a command or reading no motor could have)."""
+        lo, hi, _ = self.motor_limits
+        step = self.sensors.encoder.resolution
+        x = np.asarray(rest_lengths, dtype=np.float64)
+        return int(np.count_nonzero((x < lo - step) | (x > hi + step)))
+
     @property
     def anchors(self) -> NDArray[np.float64]:
         """Fixed UWB anchor positions (m), (n_anchors, 3)."""
