@@ -184,6 +184,19 @@ def test_a_robot_that_died_while_the_env_was_suspended_still_raises(
     assert time.monotonic() - t < 1.5 + SHORT.link_lost + 1.5
 
 
+def test_a_dead_robot_is_found_out_by_a_caller_slow_on_every_step(
+    emulator: EmulatorProcess, stepping: ZenohDriver
+) -> None:
+    """A caller that takes longer than ``stall`` between steps (a slow policy, a training
+    update) pauses the listening clock on each gap, not restarts it: the silence of a
+    dead robot still adds up to ``link_lost`` and the step raises."""
+    emulator.kill()
+    with pytest.raises(LinkError, match="no sensor message"):
+        for _ in range(60):
+            time.sleep(SHORT.stall + 0.1)  # Zenoh's threads keep listening meanwhile
+            stepping.step(NOMINAL)
+
+
 # ---------------------------------------------------------------------- connect
 
 

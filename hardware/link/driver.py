@@ -172,10 +172,12 @@ class ZenohDriver:
         self._encoders_at = 0.0  # monotonic time the newest reading was collected
         self._encoders_out_of_range = 0  # readings no motor could give, since reset
         self._last_activity = 0.0  # monotonic time of the newest command
-        self._last_sensor = 0.0
-        self._last_by_stream: dict[str, float] = {}
+        # Silence is measured on a listening clock: seconds the driver spent listening,
+        # which stands still over a gap between two looks at the inbox (see _note_listening).
+        self._listen_clock = 0.0
         self._drained_at: float | None = None  # monotonic time of the last look at the inbox
-        self._listening_since = 0.0  # ... and since when the driver has looked without a gap
+        self._last_sensor = 0.0  # listening clock when the newest sensor message arrived
+        self._last_by_stream: dict[str, float] = {}  # ... per stream
         self._deadline: float | None = None
         self._closed = False
         self.last_heartbeat: float | None = None
@@ -265,27 +267,38 @@ class ZenohDriver:
 
     # ------------------------------------------------------------------ receiving
 
-    def _note_listening(self, now: float) -> None:
-        """Remember that the driver looks at its inbox at ``now`` (monotonic s).
+    def _note_listening(self, now: float) -> float:
+        """Remember that the driver looks at its inbox at ``now`` (monotonic s), and
+        advance the listening clock over the time since the last look.
 
-        After a gap longer than ``timeouts.stall`` since the last look (the process was
-        suspended: a debugger, a laptop lid, a long GC pause), listening starts anew:
-        what the robot sent meanwhile may still be in the socket or in Zenoh's threads,
-        so its silence is only judged over the time the driver listened."""
-        if self._drained_at is None or now - self._drained_at > self.timeouts.stall:
-            self._listening_since = now
-        self._drained_at = now
+        A gap longer than ``timeouts.stall`` since the last look (the process was
+        suspended: a debugger, a laptop lid, a long GC pause; or the caller took that
+        long between steps) does not advance it: what the robot sent meanwhile may still
+        be in the socket or in Zenoh's threads, so its silence is judged only over the
+        time the driver listened. The clock pauses over a gap; it does not start again,
+        so a dead robot is still found out by a caller that is slow on every step.
+
+        Returns the monotonic time from which arrivals count on the clock: the last
+        look, or ``now`` after a gap."""
+        before, self._drained_at = self._drained_at, now
+        if before is None or now - before > self.timeouts.stall:
+            return now
+        self._listen_clock += now - before
+        return before
+
+    def _heard_at(self, arrival: float, now: float, since: float) -> float:
+        """The listening clock at a message's ``arrival`` (monotonic s), drained at
+        ``now`` from a look that listened from ``since``."""
+        return min(self._listen_clock - (now - max(arrival, since)), self._listen_clock)
 
     def _listened(self, since: float) -> float:
-        """Seconds the driver has listened without a gap since ``since`` (monotonic s),
-        up to its last look at the inbox."""
-        if self._drained_at is None:
-            return 0.0
-        return max(self._drained_at - max(since, self._listening_since), 0.0)
+        """Seconds the driver has listened since the listening clock read ``since``."""
+        return max(self._listen_clock - since, 0.0)
 
     def _drain(self) -> None:
         """Decode what was queued when the call began (a bounded amount of work)."""
-        self._note_listening(time.monotonic())
+        now = time.monotonic()
+        since = self._note_listening(now)
         with self._inbox_lock:
             batch, self._inbox = self._inbox, deque()
             self._inbox_used = 0
@@ -301,8 +314,9 @@ class ZenohDriver:
             if topic in (COMMAND_TOPIC, HEARTBEAT_TOPIC):
                 continue  # another controller on the link
             if self._assembler.add(topic, raw, arrival):  # a sensor is alive
-                self._last_sensor = arrival
-                self._last_by_stream[topic] = arrival
+                heard = self._heard_at(arrival, now, since)
+                self._last_sensor = max(self._last_sensor, heard)
+                self._last_by_stream[topic] = heard
 
     def _collect(self, now: float) -> list[Sample]:
         """Samples complete by ``now``; remembers the newest truth, frame and encoders."""
@@ -341,7 +355,7 @@ class ZenohDriver:
 
     def _wait_for(self, what: str, ready: Any, timeout: float) -> None:
         """Collect until ``ready()``; LinkError after listening ``timeout`` seconds."""
-        start = time.monotonic()
+        start = self._listen_clock
         while True:
             self._collect(time.monotonic())
             if ready():
@@ -463,7 +477,7 @@ class ZenohDriver:
         # The window grows with the wait, up to every period of it.
         bound = RESET_PERIODS + math.ceil(timeout / self.control_period)
         window = deque(recent, maxlen=bound)
-        start = time.monotonic()
+        start = self._listen_clock
         while self._listened(start) < timeout:
             window.append(list(self._period(self.limiter(nominal)).samples))
             samples = [s for period in window for s in period]
