@@ -17,6 +17,7 @@ import yaml
 
 from hardware.link import DriverTimeouts, LinkError, ZenohDriver
 from hardware.link.process import EmulatorProcess, free_port
+from tensegrity_gym.envs.factory import make_env
 from tensegrity_gym.model.description import load_robot, robot_document
 from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.samples import ImuSample
@@ -76,6 +77,28 @@ def test_valid_arguments_still_pass() -> None:
     obs, _ = env.reset(seed=0)
     assert np.all(np.isfinite(obs))
     env.close()
+
+
+class _ClosingSim(SimBackend):
+    """A simulator that counts its ``close`` calls."""
+
+    closed = 0
+
+    def close(self) -> None:
+        type(self).closed += 1
+        super().close()
+
+
+def test_a_make_that_fails_after_the_backend_is_up_closes_it(tmp_path: Path) -> None:
+    """A record_dir that cannot be made (a file is in the way) fails ``make`` after the
+    backend started; the backend (a simulator, a link session) is closed, not leaked."""
+    blocked = tmp_path / "runs"
+    blocked.write_text("not a folder")
+    backend = _ClosingSim(THREE_BAR)
+    _ClosingSim.closed = 0
+    with pytest.raises(OSError):
+        make_env(THREE_BAR, estimator="oracle", driver=backend, record_dir=blocked)
+    assert _ClosingSim.closed == 1
 
 
 # ------------------------------------------------------------------------- reward

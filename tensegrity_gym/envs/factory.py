@@ -15,6 +15,8 @@ from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from tensegrity_gym.model.registry import TaskSpec
+
 
 __all__ = ["make_backend", "make_env", "make_estimator", "make_roll_env"]
 
@@ -179,9 +181,8 @@ def make_env(
     """
     description = robot if isinstance(robot, RobotDescription) else load_robot(robot)
     spec = task_spec(task)
-    est_name = estimator if isinstance(estimator, str) else None
-    if est_name is not None:
-        estimator_spec(est_name)  # an unknown name is refused before anything starts
+    if isinstance(estimator, str):
+        estimator_spec(estimator)  # an unknown name is refused before anything starts
     _check_arguments(
         render_mode=render_mode,
         record_dir=record_dir,
@@ -200,10 +201,25 @@ def make_env(
         spawn_radius=spawn_radius,
     )
     try:
-        est = make_estimator(estimator, backend)
+        return _assemble(backend, estimator, spec, description, task_arguments, record_dir,
+                         render_mode)  # fmt: skip
     except BaseException:
-        backend.close()
+        backend.close()  # nothing half made stays open: a simulator, a link session
         raise
+
+
+def _assemble(
+    backend: Backend,
+    estimator: str | Estimator,
+    spec: TaskSpec,
+    description: RobotDescription,
+    task_arguments: dict[str, Any],
+    record_dir: str | Path | None,
+    render_mode: str | None,
+) -> TensegrityEnv:
+    """The env around a made ``backend``: its estimator, recording and task."""
+    est_name = estimator if isinstance(estimator, str) else None
+    est = make_estimator(estimator, backend)
     if hasattr(backend, "camera"):  # the simulator renders frames only when they are used
         backend.camera = est.needs_camera
     if record_dir is not None:
