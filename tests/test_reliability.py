@@ -168,6 +168,28 @@ def test_the_env_zeroes_and_explains_an_implausible_reward() -> None:
     assert all(r is not None and "cannot travel" in r for r in reasons[2:]), reasons
 
 
+class _GenerousTask(RollTask):
+    """A task (a lab's own, say) whose reward forgets to zero an implausible step."""
+
+    def reward(self, previous: Estimate, estimate: Estimate, action: NDArray[np.float32]) -> float:
+        return 5.0
+
+
+def test_the_env_zeroes_an_implausible_step_whatever_the_task_rewards() -> None:
+    """``info["reward_rejected"]`` and the reward agree: the env, not only the built-in
+    tasks, gives an implausible step 0."""
+    estimator = _JumpingEstimator(at=2)
+    env = gym.make(ENV_ID, estimator=estimator)
+    inner: Any = env.unwrapped
+    estimator.truth = inner.backend.ground_truth
+    inner.task = _GenerousTask(THREE_BAR)
+    env.reset(seed=0)
+    steps = [env.step(env.action_space.sample()) for _ in range(3)]
+    env.close()
+    assert [s[4]["reward_rejected"] is None for s in steps] == [True, False, False]
+    assert [s[1] for s in steps] == [5.0, 0.0, 0.0]
+
+
 # ------------------------------------------------------------- settling blows up
 
 

@@ -213,8 +213,10 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         terminated = self.task.terminated(estimate)
         self.task.advance(previous, estimate)  # e.g. a reached goal is replaced
         self._observation = self.task.observation(estimate)
-        if not np.isfinite(reward):
-            reward, rejected = 0.0, rejected or f"the reward was {reward}"
+        if rejected is not None:  # whatever the task's reward said: info says it earned 0
+            reward = 0.0
+        elif not np.isfinite(reward):
+            reward, rejected = 0.0, f"the reward was {reward}"
         info = self._info(estimate)
         info["reward_rejected"] = rejected
         info.update(result.info)
