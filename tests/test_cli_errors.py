@@ -32,13 +32,15 @@ def test_a_typical_mistake_is_one_line_and_exit_2(
     command: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     argv = [a.format(tmp=tmp_path) for a in MISTAKES[command]]
+    by_argparse = False
     with caplog.at_level(logging.ERROR):
         try:
             code = main(argv)
         except SystemExit as exit_:  # argparse refuses a malformed option itself
-            code = int(exit_.code or 0)
+            code, by_argparse = int(exit_.code or 0), True
     assert code == 2
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
+    assert by_argparse or len(errors) == 1, [r.getMessage() for r in errors]
     for record in errors:
         assert "\n" not in record.getMessage() and record.exc_info is None
 
