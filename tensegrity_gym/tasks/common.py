@@ -43,7 +43,8 @@ POSITION_BOUND = 2.0
 VELOCITY_BOUND = 10.0
 SPEED_MARGIN = 2.0
 """The CoM's travel in a period is bounded by this many times the speed of a fall from
-the robot's own height (or its fastest motor, if faster)."""
+the robot's resting span, its largest node-node distance (or its fastest motor, if
+faster): see :func:`max_speed`."""
 
 
 @dataclass(frozen=True)
