@@ -265,10 +265,6 @@ class TopicTable:
         self._by_key = {(k.name, c, r): t for t, (k, c, r) in self.routes.items()}
         self._by_sample = {k.sample: k for k in self.kinds}
 
-    @classmethod
-    def for_robot(cls, description: RobotDescription) -> TopicTable:
-        return cls(description)
-
     def topic(self, kind: str, channel: int = 0, rod: int = 0) -> str:
         """The topic of a kind's channel (for rod ``rod`` where it has one per rod)."""
         return self._by_key[(kind, channel, rod)]
