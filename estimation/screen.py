@@ -105,6 +105,12 @@ def _stack(rows: Sequence[ArrayLike], width: int) -> NDArray[np.float64]:
     return np.stack([_vector(r, width) for r in rows])
 
 
+MAX_STAMP_LEAD = 1.0
+"""s: how far a sample's stamp may lie ahead of the other samples of its period. A
+period is 0.1 s; samples are handed over within their period, so a second ahead is a
+clock glitch, not a late period."""
+
+
 class PlausibilityScreen:
     """Drops implausible readings and the samples of failed streams.
 
@@ -146,8 +152,26 @@ class PlausibilityScreen:
         """The failed streams, sorted."""
         return self.monitor.failed
 
+    def timely(self, samples: Sequence[Sample]) -> list[Sample]:
+        """The samples whose stamps can be believed, in their order: not NaN or inf, and
+        not more than :data:`MAX_STAMP_LEAD` s ahead of the batch's median stamp (a
+        clock glitch that would otherwise move the estimator's clock far ahead, after
+        which every real period would last nothing)."""
+        if not samples:
+            return []
+        t = np.array([s.t for s in samples], dtype=np.float64)
+        finite = np.isfinite(t)
+        self._count("stamp_not_finite", int(np.count_nonzero(~finite)))
+        if not finite.any():
+            return []
+        ahead = np.zeros_like(finite)
+        ahead[finite] = t[finite] > np.median(t[finite]) + MAX_STAMP_LEAD
+        self._count("stamp_in_future", int(np.count_nonzero(ahead)))
+        keep = finite & ~ahead
+        return [s for s, k in zip(samples, keep, strict=True) if k]
+
     def screen(self, samples: Sequence[Sample]) -> list[Sample]:
-        """The samples to use, in their order."""
+        """The samples to use, in their order (their stamps already :meth:`timely`)."""
         out: list[Sample | None] = list(samples)
         where: dict[type, list[int]] = {}
         for i, s in enumerate(samples):

@@ -281,3 +281,32 @@ def test_a_replayed_bag_whose_ranges_turn_to_millimetres(tmp_path: Path) -> None
     assert info["estimator_failed_streams"] == ["uwb"]
     assert info["estimator_rejected"]["uwb_range_too_long"] > 100
     assert info["estimator_healthy"]
+
+
+def test_a_sample_stamped_far_ahead_or_not_at_all_does_not_stop_the_clock() -> None:
+    """One glitched stamp (a second ahead of its period or more, or NaN) is dropped and
+    counted: the UKF goes on predicting over the real periods after it."""
+    from estimation.ukf import UkfEstimator
+
+    d = load_robot("three_bar")
+    backend = SimBackend(d)
+    rng = np.random.default_rng(0)
+    start = backend.reset(rng)
+    ukf = UkfEstimator()
+    command = d.rest_lengths[d.actuated]
+    first = ukf.reset(d, backend.calibration, start.samples, command, rng)
+    times = [first.t]
+    for k in range(12):
+        samples = list(backend.step(command).samples)
+        if k == 3:
+            samples.append(EncoderSample(samples[-1].t + 1.0e6, command))
+            samples.append(EncoderSample(float("nan"), command))
+        estimate = ukf.update(samples, command)
+        times.append(estimate.t)
+    truth = backend.ground_truth()
+    backend.close()
+    assert truth is not None
+    np.testing.assert_allclose(np.diff(times), 0.1, atol=1e-9)  # every period counted
+    assert estimate.rejected is not None
+    assert estimate.rejected["stamp_in_future"] == 1 and estimate.rejected["stamp_not_finite"] == 1
+    assert np.linalg.norm(estimate.com - truth.com) < 0.05

@@ -224,7 +224,8 @@ class UkfEstimator:
         c = self.config
         bounds = PlausibilityBounds.from_robot(description, calibration)
         screen = PlausibilityScreen(description, bounds, c.stream_failure_window)
-        t_ns = seconds_to_ns(max((s.t for s in samples), default=0.0))
+        timely = screen.timely(samples)
+        t_ns = seconds_to_ns(max((s.t for s in timely), default=0.0))
         return Readings(screen, c.range_window, t_ns, rest)
 
     def _reset(

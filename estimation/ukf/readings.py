@@ -127,6 +127,7 @@ class Readings:
     def absorb(self, samples: Sequence[Sample]) -> tuple[list[Round], bool]:
         """Keep the latest of each sensor; return this period's UWB rounds and whether
         an encoder reading arrived. The clock advances with every sample."""
+        samples = self.screen.timely(samples)
         if samples:
             self.t_ns = max(self.t_ns, seconds_to_ns(max(s.t for s in samples)))
         rounds: list[Round] = []
