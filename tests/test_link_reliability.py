@@ -101,6 +101,17 @@ def test_a_robot_without_anchor_ranges_fails_the_reset_naming_what_is_missing() 
                 env.reset(seed=0)
         finally:
             env.close()
+        # This robot has no camera either: the ICP tracker says so at reset.
+        env = gym.make(
+            HW_ID,
+            driver=ZenohDriver(THREE_BAR, process.address, timeouts=timeouts),
+            estimator="icp",
+        )
+        try:
+            with pytest.raises(LinkError, match="no RGB-D frame with colour and depth"):
+                env.reset(seed=0)
+        finally:
+            env.close()
     message = str(caught.value)
     assert "0 UWB ranges to anchors, 4 needed" in message and "\n" not in message
     assert "timeouts.ready" in message and "motors told to hold" in message

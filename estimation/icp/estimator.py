@@ -59,6 +59,21 @@ class IcpEstimator:
         self._need_init = True
         self.health = EstimatorHealth(HEALTH)
 
+    def initialisation_missing(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+    ) -> str | None:
+        """What ``reset`` lacks to place the rods: an RGB-D frame with colour and depth,
+        and a cable-length reading (which end of a rod is which)."""
+        frames = [s for s in samples if isinstance(s, RgbdFrame)]
+        if not any(f.rgb.size and f.depth.size for f in frames):
+            return "no RGB-D frame with colour and depth (the ICP tracker places the rods by it)"
+        if not any(isinstance(s, CableLengthSample) for s in samples):
+            return "no cable-length reading (the ICP tracker tells the rods' ends apart by it)"
+        return None
+
     @property
     def reinitialisations(self) -> int:
         """Tracks lost since the reset (each asks for a re-initialisation)."""
