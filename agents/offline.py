@@ -221,7 +221,8 @@ def estimate_bag(
         try:
             results.append(one(path, out / path.name))
         except BAG_FAILURES as err:
-            why = str(err) if str(path) in str(err) else f"{path}: {type(err).__name__}: {err}"
+            text = " ".join(str(err).split())  # one line per bag, whatever the message
+            why = text if str(path) in text else f"{path}: {type(err).__name__}: {text}"
             log.error("%s", why)
             failures.append((path, why))
     if failures:

@@ -6,7 +6,7 @@ scale): no filter should fuse it, and no re-initialisation should fit to it. The
 are computed once from the robot description and the sensor calibration, in SI units,
 and are generous on purpose: on simulated rolling they leave a factor of three or more
 between the largest reading seen and the bound (measured: 3-bar node-node ranges at
-most 0.44 m against 1.3 m, cable readings 0.28 m against 0.98 m, accelerations
+most 0.44 m against 1.3 m, cable readings 0.28 m against 1.0 m, accelerations
 68 m/s^2 against 157 m/s^2). Each check is vectorised over a batch of readings and
 says, per reading, whether it is plausible and, if not, the first reason why.
 """

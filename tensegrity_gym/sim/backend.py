@@ -122,7 +122,9 @@ def _stiffness_hint(description: RobotDescription, time_step: float) -> str:
     for k, cable in enumerate(description.cables):
         m1, m2 = masses[description.node_rod[list(cable.nodes)]]
         reduced = m1 * m2 / (m1 + m2)
-        # The explicit spring step is stable for omega * dt < 2 (and damping c/m * dt < 2).
+        # An explicit spring step is stable only for omega * dt < 2 (damping c/m * dt < 2);
+        # PyBullet's contacts and rigid rods fail well before that, so the hint names a
+        # cable from omega * dt > 0.5 on (seen: 0.79 settles, 1.58 blows up).
         ratio = max(np.sqrt(cable.stiffness / reduced), cable.damping / reduced) * time_step
         if ratio > worst_ratio:
             worst, worst_ratio = k, ratio
