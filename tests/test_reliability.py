@@ -415,3 +415,17 @@ def test_commands_outside_the_motor_range_in_a_bag_are_counted(tmp_path: Path) -
     counts = [replay.step(replay.action_space.sample())[4]["bag_out_of_range"] for _ in range(4)]
     replay.close()
     assert counts[-1] == {"command": 4}, counts
+
+
+def test_a_jumped_estimate_neither_pays_nor_ends_a_roll_episode() -> None:
+    """With a goal distance, an estimate thrown kilometres along the heading does not
+    count as progress: the episode is not terminated as done, info's progress stays."""
+    estimator = _JumpingEstimator(at=3)
+    env = gym.make(ENV_ID, estimator=estimator, goal_distance=0.3)
+    estimator.truth = env.unwrapped.backend.ground_truth  # type: ignore[attr-defined]
+    env.reset(seed=0)
+    for _ in range(5):
+        _, _, terminated, _, info = env.step(env.action_space.sample())
+        assert not terminated
+        assert abs(info["progress"]) < 0.3, info["progress"]
+    env.close()

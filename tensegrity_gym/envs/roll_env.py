@@ -210,8 +210,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self._estimate = estimate
         reward = self.task.reward(previous, estimate, np.clip(a, -1.0, 1.0).astype(np.float32))
         rejected = self.task.implausible_step(previous, estimate)
-        terminated = self.task.terminated(estimate)
         self.task.advance(previous, estimate)  # e.g. a reached goal is replaced
+        terminated = self.task.terminated(estimate)
         self._observation = self.task.observation(estimate)
         if rejected is not None:  # whatever the task's reward said: info says it earned 0
             reward = 0.0

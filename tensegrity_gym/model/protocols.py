@@ -144,7 +144,7 @@ class Task(Protocol):
     episode, all computed from the estimator's :class:`Estimate` (never ground truth).
 
     The env calls, per episode, :meth:`reset` once, then per step :meth:`reward`,
-    :meth:`implausible_step`, :meth:`terminated`, :meth:`advance` and :meth:`observation`
+    :meth:`implausible_step`, :meth:`advance`, :meth:`terminated` and :meth:`observation`
     in that order, and :meth:`progress` and :meth:`info` for ``info``.
     """
 
@@ -175,7 +175,8 @@ class Task(Protocol):
         ...
 
     def advance(self, previous: Estimate, estimate: Estimate) -> None:
-        """Move the task on after the step was rewarded (a reached goal is replaced)."""
+        """Move the task on after the step was rewarded, before :meth:`terminated` is
+        asked (a reached goal is replaced; a jump is kept out of the progress)."""
         ...
 
     def progress(self, estimate: Estimate) -> float:

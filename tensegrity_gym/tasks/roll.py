@@ -84,12 +84,24 @@ class RollTask(GoalFrameTask):
         self.heading = 0.0
         self.direction = np.array([1.0, 0.0])
         self.start = np.zeros(3)
+        self._jumped = 0.0  # m along the heading moved in implausible steps
 
     def reset(self, estimate: Estimate, rng: np.random.Generator) -> None:
         h = self.goal_heading
         self.heading = float(rng.uniform(-np.pi, np.pi)) if h is None else float(h)
         self.direction = np.array([np.cos(self.heading), np.sin(self.heading)])
         self.start = estimate.com.copy()
+        self._jumped = 0.0
+
+    def advance(self, previous: Estimate, estimate: Estimate) -> None:
+        """An implausible step (an estimate that jumped) does not count as progress, so
+        it can neither earn reward nor end the episode as done."""
+        if self.implausible_step(previous, estimate) is None:
+            return
+        with np.errstate(invalid="ignore", over="ignore"):
+            jump = float((estimate.com[:2] - previous.com[:2]) @ self.direction)
+        if np.isfinite(jump):
+            self._jumped += jump
 
     def frame_direction(self, estimate: Estimate) -> NDArray[np.float64]:
         return self.direction
@@ -100,8 +112,9 @@ class RollTask(GoalFrameTask):
         return self.direction
 
     def progress(self, estimate: Estimate) -> float:
-        """Distance (m) the CoM has moved along the goal heading since the reset."""
-        return float((estimate.com[:2] - self.start[:2]) @ self.direction)
+        """Distance (m) the CoM has moved along the goal heading since the reset, less
+        what it moved in implausible steps (see :meth:`advance`)."""
+        return float((estimate.com[:2] - self.start[:2]) @ self.direction) - self._jumped
 
     def reward(self, previous: Estimate, estimate: Estimate, action: NDArray[np.float32]) -> float:
         if self.implausible_step(previous, estimate) is not None:
