@@ -90,28 +90,19 @@ def test_a_robot_without_anchor_ranges_fails_the_reset_naming_what_is_missing() 
                 driver.reset(np.random.default_rng(0), ready=ready)
         finally:
             driver.close()
-        # The same through the env, with the UKF's own check.
-        env = gym.make(
-            HW_ID,
-            driver=ZenohDriver(THREE_BAR, process.address, timeouts=timeouts),
-            estimator="ukf",
-        )
-        try:
-            with pytest.raises(LinkError, match="0 UWB ranges to anchors, 4 needed"):
-                env.reset(seed=0)
-        finally:
-            env.close()
-        # This robot has no camera either: the ICP tracker says so at reset.
-        env = gym.make(
-            HW_ID,
-            driver=ZenohDriver(THREE_BAR, process.address, timeouts=timeouts),
-            estimator="icp",
-        )
-        try:
-            with pytest.raises(LinkError, match="no RGB-D frame with colour and depth"):
-                env.reset(seed=0)
-        finally:
-            env.close()
+        # The same through the env, with each estimator's own check (this robot has
+        # no camera either).
+        for estimator, lacking in (
+            ("ukf", "0 UWB ranges to anchors, 4 needed"),
+            ("icp", "no RGB-D frame with colour and depth"),
+        ):
+            driver_of_env = ZenohDriver(THREE_BAR, process.address, timeouts=timeouts)
+            env = gym.make(HW_ID, driver=driver_of_env, estimator=estimator)
+            try:
+                with pytest.raises(LinkError, match=lacking):
+                    env.reset(seed=0)
+            finally:
+                env.close()
     message = str(caught.value)
     assert "0 UWB ranges to anchors, 4 needed" in message and "\n" not in message
     assert "timeouts.ready" in message and "motors told to hold" in message

@@ -73,6 +73,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         lo, hi, _ = d.motor_limits
         self._target_lo, self._target_span = lo, hi - lo
         self._backend_waits = backend_can_wait(backend)
+        self.stops_sent = 0
+        """Stop commands this env sent (:meth:`stop_backend`)."""
         self._estimate: Estimate | None = None
         self._observation: NDArray[np.float32] | None = None
 
@@ -183,7 +185,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     def stop_backend(self) -> None:
         """Hold the motors now (``Backend.stop``); a failure to do so is logged, not raised,
         so that the exception that called for it is the one the user sees."""
-        self.stops_sent = getattr(self, "stops_sent", 0) + 1  # read by envs.safety
+        self.stops_sent += 1  # read by envs.safety, which then stops no second time
         try:
             self.backend.stop()
         except Exception:
@@ -208,15 +210,16 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         previous = self._estimate
         estimate = self.estimator.update(result.samples, targets)
         self._estimate = estimate
-        reward = self.task.reward(previous, estimate, np.clip(a, -1.0, 1.0).astype(np.float32))
+        # An implausible step earns 0 whatever the task's reward would say.
         rejected = self.task.implausible_step(previous, estimate)
+        reward = 0.0
+        if rejected is None:
+            reward = self.task.reward(previous, estimate, np.clip(a, -1.0, 1.0).astype(np.float32))
+            if not np.isfinite(reward):
+                reward, rejected = 0.0, f"the reward was {reward}"
         self.task.advance(previous, estimate)  # e.g. a reached goal is replaced
         terminated = self.task.terminated(estimate)
         self._observation = self.task.observation(estimate)
-        if rejected is not None:  # whatever the task's reward said: info says it earned 0
-            reward = 0.0
-        elif not np.isfinite(reward):
-            reward, rejected = 0.0, f"the reward was {reward}"
         info = self._info(estimate)
         info["reward_rejected"] = rejected
         info.update(result.info)

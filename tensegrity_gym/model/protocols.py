@@ -143,9 +143,10 @@ class Task(Protocol):
     """What the robot is asked to do: the observation, the reward and the end of an
     episode, all computed from the estimator's :class:`Estimate` (never ground truth).
 
-    The env calls, per episode, :meth:`reset` once, then per step :meth:`reward`,
-    :meth:`implausible_step`, :meth:`advance`, :meth:`terminated` and :meth:`observation`
-    in that order, and :meth:`progress` and :meth:`info` for ``info``.
+    The env calls, per episode, :meth:`reset` once, then per step
+    :meth:`implausible_step`, :meth:`reward` (only for a plausible step: an implausible
+    one earns 0), :meth:`advance`, :meth:`terminated` and :meth:`observation` in that
+    order, and :meth:`progress` and :meth:`info` for ``info``.
     """
 
     observation_space: spaces.Box
