@@ -48,7 +48,7 @@ from hardware.link.wire import (
 )
 from tensegrity_gym.model.description import DescriptionError, loads_robot
 from tensegrity_gym.model.protocols import StepResult
-from tensegrity_gym.model.samples import EncoderSample, ImuSample, RgbdFrame
+from tensegrity_gym.model.samples import GROUND_TRUTH, EncoderSample, ImuSample, RgbdFrame
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -570,6 +570,15 @@ class ZenohDriver:
     def ground_truth(self) -> GroundTruth | None:
         """The newest ground truth the robot's side published (motion capture), if any."""
         return self._truth
+
+    def sample_kinds(self) -> frozenset[str]:
+        """What the robot carries (its description's ``sample_kinds``), known before it
+        is reached, so that ``make`` refuses an estimator the robot cannot serve.
+
+        ``"ground_truth"`` is included too, though whether motion capture publishes it
+        is not known until the robot's side speaks: the oracle's ``reset`` waits for it
+        and names it when it does not come (``timeouts.ready``)."""
+        return self.description.sample_kinds | {GROUND_TRUTH}
 
     def render(self, width: int, height: int) -> NDArray[np.uint8]:
         """The newest camera frame scaled to (height, width, 3); black without one."""

@@ -33,6 +33,8 @@ def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
             )
         return name
     spec = estimator_spec(name)
+    if spec.camera and hasattr(backend, "camera"):
+        backend.camera = True  # the simulator says rgbd only while it renders frames
     missing = spec.missing(backend_sample_kinds(backend), backend.description.name)
     if missing is not None:
         raise ValueError(f"make: {missing}")

@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from tensegrity_gym.model.samples import SAMPLE_KINDS
+
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
@@ -258,8 +260,18 @@ class RobotDescription:
     """The robot exists on the robot link: ``...Hardware-v0`` ids are registered for it."""
     gait: Gait | None = None
     """Its scripted rolling gait, if it has one (the YAML's ``gait``)."""
+    carries: tuple[str, ...] | None = None
+    """The sample kinds (:data:`~tensegrity_gym.model.samples.SAMPLE_KINDS`) its sensors
+    give, the YAML's ``carries``; None (absent): every kind. See :attr:`sample_kinds`."""
     source: str = field(default="", compare=False)
     """The file the description was read from."""
+
+    @property
+    def sample_kinds(self) -> frozenset[str]:
+        """The sample kinds the robot carries sensors for: ``carries``, else every kind
+        of :data:`~tensegrity_gym.model.samples.SAMPLE_KINDS` (those a lab registered
+        too). Not ``"ground_truth"``: motion capture is the lab's, not the robot's."""
+        return frozenset(SAMPLE_KINDS if self.carries is None else self.carries)
 
     @property
     def n_nodes(self) -> int:
@@ -581,30 +593,18 @@ def _display_name(r: _Reader, top: dict[str, Any]) -> str:
     return name
 
 
-def parse_robot(doc: Any, source: str) -> RobotDescription:
-    """Validate a parsed YAML document and build the description from it."""
-    r = _Reader(source)
-    top = r.mapping(
-        doc,
-        "",
-        {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"},
-        frozenset({"display_name", "hardware", "gait"}),
-    )
-    g = r.mapping(
-        top["ground"],
-        "ground",
-        {"lateral_friction", "rolling_friction", "spinning_friction", "restitution"},
-    )
-    ground = Ground(
-        *(
-            r.number(g[key], f"ground.{key}", non_negative=True)
-            for key in ("lateral_friction", "rolling_friction", "spinning_friction", "restitution")
-        )
-    )
+def _ground(r: _Reader, doc: Any) -> Ground:
+    """The ``ground`` section: friction coefficients (rolling and spinning in m)."""
+    keys = ("lateral_friction", "rolling_friction", "spinning_friction", "restitution")
+    g = r.mapping(doc, "ground", set(keys))
+    return Ground(*(r.number(g[key], f"ground.{key}", non_negative=True) for key in keys))
 
+
+def _nodes(r: _Reader, doc: Any) -> tuple[list[Node], dict[str, int]]:
+    """The ``nodes`` section (positions in m), and each node's index by name."""
     nodes: list[Node] = []
     index: dict[str, int] = {}
-    for i, item in enumerate(r.sequence(top["nodes"], "nodes", min_len=2)):
+    for i, item in enumerate(r.sequence(doc, "nodes", min_len=2)):
         n = r.mapping(item, f"nodes[{i}]", {"name", "position"})
         name = r.string(n["name"], f"nodes[{i}].name")
         if name in index:
@@ -612,12 +612,19 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         index[name] = i
         pos = r.vector(n["position"], f"nodes[{i}].position", 3)
         nodes.append(Node(name, (pos[0], pos[1], pos[2])))
-    positions = np.array([n.position for n in nodes])
+    return nodes, index
 
+
+def _rods(
+    r: _Reader, doc: Any, nodes: list[Node], index: dict[str, int]
+) -> tuple[list[Rod], dict[int, str]]:
+    """The ``rods`` section, checked to assemble with ``nodes`` (each node ends exactly
+    one rod, at the rod's length in m), and the name of the rod each node ends."""
+    positions = np.array([n.position for n in nodes])
     rods: list[Rod] = []
     owner: dict[int, str] = {}
     rod_keys = {"name", "nodes", "length", "radius", "endcap_radius", "mass", "color"}
-    for i, item in enumerate(r.sequence(top["rods"], "rods")):
+    for i, item in enumerate(r.sequence(doc, "rods")):
         p = f"rods[{i}]"
         d = r.mapping(item, p, rod_keys)
         name = r.string(d["name"], f"{p}.name")
@@ -657,10 +664,31 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
     loose = [nodes[k].name for k in range(len(nodes)) if k not in owner]
     if loose:
         raise r.fail("rods", f"rods cannot be assembled: node {loose[0]!r} ends no rod")
+    return rods, owner
 
+
+def _motor(r: _Reader, doc: Any, p: str, rest: float) -> Motor:
+    """The ``motor`` of the actuated cable at path ``p``, whose range (m) must hold its
+    initial rest length ``rest`` (m)."""
+    m = r.mapping(doc, f"{p}.motor", {"min_rest_length", "max_rest_length", "max_speed"})
+    lo = r.number(m["min_rest_length"], f"{p}.motor.min_rest_length", positive=True)
+    hi = r.number(m["max_rest_length"], f"{p}.motor.max_rest_length", positive=True)
+    if hi <= lo:
+        raise r.fail(
+            f"{p}.motor.max_rest_length",
+            f"{hi} must exceed min_rest_length {lo}: a motor needs a range to move in",
+        )
+    if not lo <= rest <= hi:
+        raise r.fail(f"{p}.rest_length", f"{rest} lies outside the motor's range [{lo}, {hi}]")
+    return Motor(lo, hi, r.number(m["max_speed"], f"{p}.motor.max_speed", positive=True))
+
+
+def _cables(r: _Reader, doc: Any, index: dict[str, int], owner: dict[int, str]) -> list[Cable]:
+    """The ``cables`` section: each joins two rods (``owner``: node -> its rod's name),
+    and at least one is actuated."""
     cables: list[Cable] = []
     cable_keys = {"name", "nodes", "stiffness", "damping", "rest_length", "actuated"}
-    for i, item in enumerate(r.sequence(top["cables"], "cables")):
+    for i, item in enumerate(r.sequence(doc, "cables")):
         p = f"cables[{i}]"
         if not isinstance(item, dict):
             raise r.fail(p, f"expected a mapping, got {type(item).__name__}")
@@ -674,23 +702,7 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         if owner[pair[0]] == owner[pair[1]]:
             raise r.fail(f"{p}.nodes", f"both ends are on rod {owner[pair[0]]!r}")
         rest = r.number(d["rest_length"], f"{p}.rest_length", positive=True)
-        motor = None
-        if actuated:
-            m = r.mapping(
-                d["motor"], f"{p}.motor", {"min_rest_length", "max_rest_length", "max_speed"}
-            )
-            lo = r.number(m["min_rest_length"], f"{p}.motor.min_rest_length", positive=True)
-            hi = r.number(m["max_rest_length"], f"{p}.motor.max_rest_length", positive=True)
-            if hi <= lo:
-                raise r.fail(
-                    f"{p}.motor.max_rest_length",
-                    f"{hi} must exceed min_rest_length {lo}: a motor needs a range to move in",
-                )
-            if not lo <= rest <= hi:
-                raise r.fail(
-                    f"{p}.rest_length", f"{rest} lies outside the motor's range [{lo}, {hi}]"
-                )
-            motor = Motor(lo, hi, r.number(m["max_speed"], f"{p}.motor.max_speed", positive=True))
+        motor = _motor(r, d["motor"], p, rest) if actuated else None
         cables.append(
             Cable(
                 name=r.string(d["name"], f"{p}.name"),
@@ -704,7 +716,32 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         )
     if not any(c.actuated for c in cables):
         raise r.fail("cables", "no cable is actuated")
+    return cables
 
+
+def _carries(r: _Reader, top: dict[str, Any]) -> tuple[str, ...] | None:
+    """The YAML's ``carries``: distinct names of :data:`SAMPLE_KINDS`, in that table's
+    order; None where it is absent (the robot carries every kind)."""
+    if top.get("carries") is None:
+        return None
+    index = {kind: i for i, kind in enumerate(SAMPLE_KINDS)}
+    kinds = list(index)
+    return tuple(kinds[i] for i in sorted(_names(r, top["carries"], "carries", index)))
+
+
+def parse_robot(doc: Any, source: str) -> RobotDescription:
+    """Validate a parsed YAML document and build the description from it."""
+    r = _Reader(source)
+    top = r.mapping(
+        doc,
+        "",
+        {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"},
+        frozenset({"display_name", "hardware", "gait", "carries"}),
+    )
+    ground = _ground(r, top["ground"])
+    nodes, index = _nodes(r, top["nodes"])
+    rods, owner = _rods(r, top["rods"], nodes, index)
+    cables = _cables(r, top["cables"], index, owner)
     return RobotDescription(
         name=r.string(top["name"], "name"),
         gravity=r.number(top["gravity"], "gravity", non_negative=True),
@@ -716,6 +753,7 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         display_name=_display_name(r, top),
         hardware=r.boolean(top.get("hardware", False), "hardware"),
         gait=None if top.get("gait") is None else _gait(r, top["gait"], nodes, cables),
+        carries=_carries(r, top),
         source=source,
     )
 
@@ -763,6 +801,7 @@ def robot_document(d: RobotDescription) -> dict[str, Any]:
             for c in d.cables
         ],
         "sensors": plain(asdict(d.sensors)),
+        **({} if d.carries is None else {"carries": list(d.carries)}),
     } | ({} if d.gait is None else {"gait": gait_document(d)})
 
 

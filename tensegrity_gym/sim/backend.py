@@ -36,6 +36,14 @@ __all__ = ["SettleError", "SimBackend", "check_sensor_rates", "settled_pose"]
 _SIMULATED_KINDS = frozenset(
     ["imu", "ahrs", "encoders", "cable_lengths", "uwb", "rgbd", "contacts", GROUND_TRUTH]
 )
+# The sample kinds each scheduled sensor model gives: one not carried is not scheduled.
+_SENSOR_KINDS = {
+    "imu": frozenset({"imu", "ahrs"}),
+    "encoder": frozenset({"encoders"}),
+    "cable_length": frozenset({"cable_lengths"}),
+    "contact": frozenset({"contacts"}),
+    "uwb": frozenset({"uwb"}),
+}
 
 # A state whose nodes move faster than this, or leave this box, has blown up.
 _MAX_SPEED = 50.0  # m/s
@@ -141,19 +149,24 @@ def _stiffness_hint(description: RobotDescription, time_step: float) -> str:
     return "lower time_step, or check the cables' stiffness and damping and the rods' masses"
 
 
+def _sensor_rates(description: RobotDescription) -> dict[str, float]:
+    """Each sensor's rate (Hz), by its field in the description's ``sensors``."""
+    s = description.sensors
+    return {
+        "imu": s.imu.rate,
+        "encoder": s.encoder.rate,
+        "cable_length": s.cable_length.rate,
+        "uwb": s.uwb.rate,
+        "contact": s.contact.rate,
+        "camera": s.camera.rate,
+    }
+
+
 def check_sensor_rates(description: RobotDescription, time_step: float) -> None:
     """Refuse a sensor faster than the physics: its samples would share stamps (and a
     bag or the link would drop them as duplicates)."""
     physics_rate = 1.0 / time_step
-    s = description.sensors
-    for name, rate in (
-        ("imu", s.imu.rate),
-        ("encoder", s.encoder.rate),
-        ("cable_length", s.cable_length.rate),
-        ("uwb", s.uwb.rate),
-        ("contact", s.contact.rate),
-        ("camera", s.camera.rate),
-    ):
+    for name, rate in _sensor_rates(description).items():
         if rate > physics_rate * (1.0 + 1e-9):
             where = description.source or description.name
             raise ValueError(
@@ -215,13 +228,17 @@ class SimBackend:
         self.contact = ContactModel(s.contact, description)
         self.uwb = UwbModel(s.uwb, description)
         self.camera_model = CameraModel(s.camera)
+        rates = _sensor_rates(description)
+        carried = description.sample_kinds
+        # Only the sensors the robot carries are sampled; of the IMU's two kinds, one
+        # not carried is dropped from what it gives.
         self._schedules = {
-            "imu": SensorSchedule(s.imu.rate),
-            "encoder": SensorSchedule(s.encoder.rate),
-            "cable_length": SensorSchedule(s.cable_length.rate),
-            "contact": SensorSchedule(s.contact.rate),
-            "uwb": SensorSchedule(s.uwb.rate),
+            name: SensorSchedule(rates[name])
+            for name, kinds in _SENSOR_KINDS.items()
+            if kinds & carried
         }
+        self._carries_camera = "rgbd" in carried
+        self._imu_kinds = _SENSOR_KINDS["imu"] & carried
         self._rng: np.random.Generator | None = None
         self._calibration: SensorCalibration | None = None
         self._diverged = False
@@ -312,9 +329,17 @@ class SimBackend:
         return StepResult(self._sample({name: [snap] for name in self._schedules}, rng))
 
     def sample_kinds(self) -> frozenset[str]:
-        """The kinds its sensor models produce (frames rendered when an estimator asks),
-        and the truth; not a kind registered later by a lab for its own robot."""
-        return _SIMULATED_KINDS
+        """The kinds its sensor models produce for the sensors the robot carries
+        (``description.sample_kinds``; RGB-D frames only while :attr:`camera` renders
+        them, which ``make`` turns on for an estimator that needs them), and the truth;
+        not a kind registered later by a lab for its own robot."""
+        kinds = _SIMULATED_KINDS & (self.description.sample_kinds | {GROUND_TRUTH})
+        return kinds if self._renders else kinds - {"rgbd"}
+
+    @property
+    def _renders(self) -> bool:
+        """Whether a period's samples end with an RGB-D frame."""
+        return self.camera and self._carries_camera
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
         if self._rng is None:
@@ -349,13 +374,20 @@ class SimBackend:
         rng: np.random.Generator,
         last: Snapshot | None = None,
     ) -> list[Sample]:
-        imu, ahrs = self.imu.sample(snaps["imu"], rng)
-        samples: list[Sample] = [*imu, *ahrs]
-        samples += self.encoder.sample(snaps["encoder"])
-        samples += self.cable_length.sample(snaps["cable_length"], rng)
-        samples += self.contact.sample(snaps["contact"])
-        samples += self.uwb.sample(snaps["uwb"], rng)
-        if self.camera:
+        samples: list[Sample] = []
+        if "imu" in snaps:
+            imu, ahrs = self.imu.sample(snaps["imu"], rng)
+            samples += [*imu] if "imu" in self._imu_kinds else []
+            samples += [*ahrs] if "ahrs" in self._imu_kinds else []
+        if "encoder" in snaps:
+            samples += self.encoder.sample(snaps["encoder"])
+        if "cable_length" in snaps:
+            samples += self.cable_length.sample(snaps["cable_length"], rng)
+        if "contact" in snaps:
+            samples += self.contact.sample(snaps["contact"])
+        if "uwb" in snaps:
+            samples += self.uwb.sample(snaps["uwb"], rng)
+        if self._renders:
             t = last.t if last is not None else self.world.time
             rgb, depth = self.world.camera_image(self.description.sensors.camera)
             samples.append(self.camera_model.frame(t, rgb, depth, rng))
