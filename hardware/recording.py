@@ -3,7 +3,9 @@
 :class:`RecordingBackend` and :class:`RecordingEstimator` wrap the env's parts and
 hand everything to a sink: :class:`MemorySink` keeps runs in memory (an estimator
 study replays every variant on the same samples), :class:`BagSink` writes one ROS 2
-bag per episode. The wrapped parts behave exactly as before.
+bag per episode. The wrapped parts behave exactly as before. Times are the samples'
+(seconds from the backend's clock origin); a bag gets the robot's own stamps back,
+``clock_origin_ns`` plus them.
 """
 
 from __future__ import annotations
@@ -76,8 +78,11 @@ class RunSink(Protocol):
         calibration: SensorCalibration,
         control_period: float,
         start: RecordedStep,
+        *,
+        clock_origin_ns: int = 0,
     ) -> None:
-        """A new episode starts with these samples."""
+        """A new episode starts with these samples; ``clock_origin_ns`` is the
+        robot-clock ns of its sample time 0."""
         ...
 
     def step(self, t_command: float, step: RecordedStep) -> None:
@@ -119,6 +124,12 @@ class RecordingBackend:
         return self.inner.calibration
 
     @property
+    def clock_origin_ns(self) -> int:
+        """The wrapped backend's: robot-clock ns of sample time 0 (0 for a backend
+        written before it existed)."""
+        return int(getattr(self.inner, "clock_origin_ns", 0))
+
+    @property
     def t_command(self) -> float:
         """When the next command is sent (s): the end of the latest period."""
         return ns_to_seconds(self._t_ns)
@@ -132,7 +143,13 @@ class RecordingBackend:
         times = [s.t for s in result.samples] + ([truth.t] if truth is not None else [])
         self._t_ns = seconds_to_ns(max(times, default=0.0))
         start = RecordedStep(list(result.samples), hold_command(self.description), truth)
-        self.sink.begin(self.description, self.inner.calibration, self.control_period, start)
+        self.sink.begin(
+            self.description,
+            self.inner.calibration,
+            self.control_period,
+            start,
+            clock_origin_ns=self.clock_origin_ns,
+        )
         return result
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
@@ -214,6 +231,8 @@ class MemorySink:
         calibration: SensorCalibration,
         control_period: float,
         start: RecordedStep,
+        *,
+        clock_origin_ns: int = 0,
     ) -> None:
         self.runs.append(RecordedRun(description, calibration, start, [], control_period))
 
@@ -260,7 +279,10 @@ class BagSink:
         calibration: SensorCalibration,
         control_period: float,
         start: RecordedStep,
+        *,
+        clock_origin_ns: int = 0,
     ) -> None:
+        """Opens the episode's bag, its stamps ``clock_origin_ns`` plus sample times."""
         from hardware.bag.writer import BagWriter
 
         self.end()
@@ -268,7 +290,12 @@ class BagSink:
         info = {**self.run_info, "episode": self._next, "control_period": control_period}
         self._next += 1
         self.writer = BagWriter(
-            path, description, calibration, info, flush_period=self.flush_period
+            path,
+            description,
+            calibration,
+            info,
+            flush_period=self.flush_period,
+            clock_origin_ns=clock_origin_ns,
         )
         self.paths.append(self.writer.path)
         self.writer.write_samples(start.samples)

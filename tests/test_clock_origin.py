@@ -1,13 +1,13 @@
 """Estimates do not depend on the clock's origin (issue 13).
 
 One simulated run is recorded to a bag, then copied with every stamp (log times, header
-stamps, the stamp of each UWB exchange) moved: by about 12 days, and into Unix time. The UKF and the
-ICP tracker over the copy must give the very same estimates, bit for bit, offline and
-through the env's ``driver="bag:PATH"``: they count time in integer nanoseconds.
-
-Samples carry float seconds, which in Unix time hold a stamp to about 240 ns: the shift
-into Unix time keeps this bag's period ends and frames exact; with its stamps jittered by
-up to 1 us the UKF's periods still differ there (an expected failure).
+stamps, the stamp of each UWB exchange) moved: by about 12 days, and into Unix time, and
+jittered by up to 1 us. The UKF and the ICP tracker over a copy must give the very same
+estimates, bit for bit, offline and through the env's ``driver="bag:PATH"``, as over the
+bag it was moved from: they count time in integer nanoseconds, and the bag's decoder
+hands out seconds from its clock origin (the first log time floored to a second), which
+float seconds hold to the nanosecond whatever the robot's clock reads. Recording a
+replayed copy writes its absolute stamps back.
 """
 
 from __future__ import annotations
@@ -29,6 +29,7 @@ from estimation.icp import IcpEstimator
 from estimation.ukf import UkfEstimator
 from hardware.bag import ReplayBackend
 from hardware.bag import messages as m
+from hardware.bag.assembler import header_stamp
 from hardware.recording import BagSink, RecordingBackend, hold_command
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.sim.backend import SimBackend
@@ -148,26 +149,22 @@ def _assert_identical(a: list[Estimate], b: list[Estimate]) -> None:
         assert (x.healthy, x.reinitialised) == (y.healthy, y.reinitialised), f"update {k}"
 
 
-_SHIFTED = ["12-days", "unix-time"]
-"""Copies of the base bag whose estimates must be its own. Float seconds of Unix time
-hold a stamp to about 240 ns; this bag's period ends and frames (multiples of 0.1 s, a
-multiple of 256 ns) lose the same in every period, so its periods come out exact."""
-_NOT_HELD = pytest.param(
-    "jittered-unix-time",
-    marks=pytest.mark.xfail(
-        strict=True,
-        reason="samples carry float seconds of absolute time: at 1.7e9 s they hold a stamp "
-        "to about 240 ns, and periods of stamps not 256 ns apart come out wrong by as much "
-        "(the bag's decoder would have to hand out times from an origin of its own)",
-    ),
-)
+_SHIFTED = ["12-days", "unix-time", "jittered-unix-time"]
+"""Copies whose estimates must be those of the bag they were moved from (:func:`_source`).
+Float seconds of Unix time would hold a stamp to about 240 ns only; the reader's clock
+origin keeps every stamp, jittered or not, to the nanosecond."""
 
 
-@pytest.mark.parametrize("shifted", [*_SHIFTED, _NOT_HELD])
+def _source(shifted: str) -> str:
+    """The bag a copy was moved from: the jittered one for a jittered copy."""
+    return "jittered" if shifted.startswith("jittered") else "base"
+
+
+@pytest.mark.parametrize("shifted", _SHIFTED)
 def test_the_ukf_offline_does_not_depend_on_the_clock_origin(
     bags: dict[str, Path], shifted: str
 ) -> None:
-    base = _offline(bags["jittered" if shifted.startswith("jittered") else "base"], UkfEstimator())
+    base = _offline(bags[_source(shifted)], UkfEstimator())
     assert all(e.is_finite() for e in base) and base[-1].healthy
     _assert_identical(base, _offline(bags[shifted], UkfEstimator()))
 
@@ -176,9 +173,20 @@ def test_the_ukf_offline_does_not_depend_on_the_clock_origin(
 def test_the_icp_tracker_offline_does_not_depend_on_the_clock_origin(
     bags: dict[str, Path], shifted: str
 ) -> None:
-    base = _offline(bags["base"], IcpEstimator())
+    base = _offline(bags[_source(shifted)], IcpEstimator())
     assert any(e.healthy for e in base)
     _assert_identical(base, _offline(bags[shifted], IcpEstimator()))
+
+
+def test_a_bag_hands_out_times_from_its_first_whole_second(bags: dict[str, Path]) -> None:
+    origins = {name: ReplayBackend(bag).clock_origin_ns for name, bag in bags.items()}
+    assert origins == {
+        "base": 0,
+        "12-days": DAYS,
+        "unix-time": UNIX,
+        "jittered": 0,
+        "jittered-unix-time": UNIX,
+    }
 
 
 def _online(bag: Path, estimator: str) -> tuple[list[Any], list[float]]:
@@ -203,8 +211,45 @@ def _online(bag: Path, estimator: str) -> tuple[list[Any], list[float]]:
 def test_a_replayed_bag_gives_the_same_observations_whatever_the_clock_origin(
     bags: dict[str, Path], shifted: str, estimator: str
 ) -> None:
-    obs_a, rewards_a = _online(bags["base"], estimator)
+    obs_a, rewards_a = _online(bags[_source(shifted)], estimator)
     obs_b, rewards_b = _online(bags[shifted], estimator)
     assert len(obs_a) == STEPS + 1 and rewards_a == rewards_b
     for k, (a, b) in enumerate(zip(obs_a, obs_b, strict=True)):
         assert np.array_equal(a, b), f"step {k}"
+
+
+def _stamps(bag: Path, skip: frozenset[str]) -> list[tuple[str, int, list[int]]]:
+    """(topic, log time, stamps) of each message outside ``skip``, in log-time order:
+    its header stamp where it has a header, and the stamp of each UWB exchange (ns)."""
+    store = m.typestore()
+    out = []
+    with Reader(bag) as reader:
+        for conn, t, raw in reader.messages():
+            if conn.topic in skip:
+                continue
+            stamps = [] if conn.msgtype == m.STRING else [header_stamp(raw)]
+            if conn.msgtype == m.UWB_RANGES:
+                msg = store.deserialize_cdr(raw, m.UWB_RANGES)
+                stamps += [m.stamp_ns(r.stamp.sec, r.stamp.nanosec) for r in msg.ranges]
+            out.append((conn.topic, t, stamps))
+    return sorted(out, key=lambda x: (x[1], x[0], x[2]))
+
+
+@pytest.mark.parametrize("shifted", ["unix-time", "jittered-unix-time"])
+def test_recording_a_replayed_bag_writes_its_absolute_stamps_again(
+    bags: dict[str, Path], shifted: str, tmp_path: Path
+) -> None:
+    replay = ReplayBackend(bags[shifted])
+    backend = RecordingBackend(replay, BagSink(tmp_path, {"env": ENV}))
+    assert backend.clock_origin_ns == UNIX
+    start = backend.reset(np.random.default_rng(0))
+    assert 0 <= min(s.t for s in start.samples) < 1.0  # small times, from the origin
+    while (command := replay.next_command) is not None:
+        backend.step(command)
+    backend.close()
+    # The recorder logs each command at the end of the period before it, which the
+    # jittered copy moved; everything else is at its original time and stamp.
+    skip = frozenset({m.COMMAND_TOPIC} if shifted.startswith("jittered") else ())
+    original = _stamps(bags[shifted], skip)
+    assert original == _stamps(tmp_path / "episode_000", skip)
+    assert min(t for _, t, _ in original) >= UNIX

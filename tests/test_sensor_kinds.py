@@ -34,7 +34,6 @@ from tensegrity_gym.model.samples import (
     EncoderSample,
     UwbRangeSample,
     ns_to_seconds,
-    seconds_to_ns,
 )
 from tensegrity_gym.sim.backend import SimBackend
 
@@ -71,7 +70,7 @@ def _decode(ctx: CodecContext, channel: int, rod: int, raw: m.Raw) -> tuple[int,
     if not math.isfinite(msg.fluid_pressure):
         raise MessageError("the pressure is not finite")
     ns = m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)
-    return ns, BarometerSample(ns_to_seconds(ns), float(msg.fluid_pressure))
+    return ns, BarometerSample(ctx.seconds(ns), float(msg.fluid_pressure))
 
 
 # Between the encoders (2) and the cable lengths (3) among samples of one stamp.
@@ -208,7 +207,7 @@ def test_a_toy_kind_streams_over_the_link_in_stamp_order(barometer: SensorKind) 
         try:
             publisher = robot_side.declare_publisher(address.key(TOPIC))
             driver.reset(np.random.default_rng(0))
-            start = seconds_to_ns(time.time())
+            start = time.time_ns() - driver.clock_origin_ns  # ns of sample time, now
             sent = [
                 BarometerSample(ns_to_seconds(start + k * 5_000_000), 100_000.0 + k)
                 for k in range(20)

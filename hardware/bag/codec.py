@@ -7,6 +7,12 @@ their encoders and decoders work in.
 Decoding validates what it reads: a wrong size, an unknown name or a value that is not
 finite raises :class:`MessageError`, which the callers count or report with the topic
 and time.
+
+Stamps are the robot's clock; samples carry seconds from the codec's clock origin
+(``origin_ns``, the robot-clock ns of sample time 0), so that a robot stamped in Unix
+time hands out small times that float seconds hold to the nanosecond. Decoding
+subtracts the origin (:meth:`RobotCodec.seconds`), encoding adds it back
+(:meth:`RobotCodec.stamp_ns`): a recording round-trips to its absolute stamps.
 """
 
 from __future__ import annotations
@@ -31,6 +37,7 @@ from tensegrity_gym.model.samples import (
     RgbdFrame,
     UwbRangeSample,
     ns_to_seconds,
+    seconds_to_ns,
 )
 
 if TYPE_CHECKING:
@@ -48,6 +55,8 @@ Vec = NDArray[np.float64]
 
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
+_NS = 1_000_000_000
+_STAMP = struct.Struct("<iI")  # a std_msgs/Header's stamp, after the CDR encapsulation
 
 
 class MessageError(ValueError):
@@ -66,11 +75,19 @@ def _finite(values: NDArray[Any], what: str) -> NDArray[Any]:
 
 
 class RobotCodec:
-    """Encoders and decoders of one robot's messages (see :mod:`hardware.bag.messages`)."""
+    """Encoders and decoders of one robot's messages (see :mod:`hardware.bag.messages`).
 
-    def __init__(self, description: RobotDescription) -> None:
+    Args:
+        description: the robot.
+        origin_ns: the robot-clock ns at which sample time 0 lies (see the module
+            docstring); the owner may move it between episodes.
+    """
+
+    def __init__(self, description: RobotDescription, origin_ns: int = 0) -> None:
         d = description
         self.description = d
+        self.origin_ns = origin_ns
+        """Robot-clock ns of sample time 0."""
         self.topics = TopicTable(d)
         self.store = m.typestore()
         t = self.store.types
@@ -89,11 +106,42 @@ class RobotCodec:
         self._actuated_index = {name: k for k, name in enumerate(self.actuated_names)}
         self.n_modules = d.n_nodes + len(d.anchors)
 
+    # ------------------------------------------------------------------ clock
+
+    def seconds(self, ns: int) -> float:
+        """Sample time (s from the origin) of the robot-clock stamp ``ns``."""
+        return ns_to_seconds(ns - self.origin_ns)
+
+    def stamp_ns(self, t: float) -> int:
+        """The robot-clock stamp (ns) of sample time ``t`` (s from the origin)."""
+        return seconds_to_ns(t) + self.origin_ns
+
+    def _stamp_of(self, msg: Any) -> float:
+        """Sample time (s) of a decoded message's header stamp."""
+        return self.seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec))
+
     # ------------------------------------------------------------------ helpers
 
     def header(self, t: float, frame_id: str = "") -> Any:
-        sec, nanosec = m.stamp(t)
+        """A std_msgs/Header stamped at sample time ``t`` (s)."""
+        sec, nanosec = divmod(self.stamp_ns(t), _NS)
         return self._Header(stamp=self._Time(sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+    def _restamped(self, raw: bytes, t: float) -> bytes:
+        """A message of the fast encoders of :mod:`messages` (stamped ``t`` from 0),
+        stamped at sample time ``t`` (s) on the robot's clock."""
+        if not self.origin_ns:
+            return raw
+        return raw[:4] + _STAMP.pack(*divmod(self.stamp_ns(t), _NS)) + raw[12:]
+
+    def imu(self, t: float, frame_id: str, **fields: Any) -> bytes:
+        """A sensor_msgs/Imu at sample time ``t`` (s); ``fields`` as
+        :func:`messages.encode_imu` takes them (orientation, gyro rad/s, accel m/s^2)."""
+        return self._restamped(m.encode_imu(t, frame_id, **fields), t)
+
+    def magnetic_field(self, t: float, frame_id: str, field: Any) -> bytes:
+        """A sensor_msgs/MagneticField (T) at sample time ``t`` (s)."""
+        return self._restamped(m.encode_magnetic_field(t, frame_id, field), t)
 
     def serialize(self, msg: Any, msgtype: str) -> bytes:
         return bytes(self.store.serialize_cdr(msg, msgtype))
@@ -333,15 +381,14 @@ class RobotCodec:
         for n, r in enumerate(msg.ranges):
             pairs[n] = r.initiator, r.responder
             ranges[n] = r.range
-            times[n] = ns_to_seconds(m.stamp_ns(r.stamp.sec, r.stamp.nanosec))
+            times[n] = self.seconds(m.stamp_ns(r.stamp.sec, r.stamp.nanosec))
         if k and pairs.max() >= self.n_modules:
             raise MessageError(
                 f"module id {int(pairs.max())} out of range: the robot has {self.n_modules} "
                 "UWB modules (its nodes, then its anchors)"
             )
         _finite(ranges, "range")
-        t = ns_to_seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec))
-        return UwbRangeSample(t, times, pairs, ranges)
+        return UwbRangeSample(self._stamp_of(msg), times, pairs, ranges)
 
     def decode_contacts(self, raw: Raw) -> ContactSample:
         msg = self.deserialize(raw, m.CONTACTS)
@@ -359,8 +406,7 @@ class RobotCodec:
             in_contact = np.zeros(len(self.node_names), dtype=np.bool_)
             for name, flag in zip(msg.nodes, flags, strict=True):
                 in_contact[self._node_index[name]] = flag
-        t = ns_to_seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec))
-        return ContactSample(t, in_contact)
+        return ContactSample(self._stamp_of(msg), in_contact)
 
     def decode_image(self, raw: Raw, kind: str) -> tuple[int, NDArray[Any]]:
         """(stamp ns, image): ``color`` gives (H, W, 3) uint8, ``depth`` (H, W) float32."""
@@ -396,7 +442,7 @@ class RobotCodec:
             v for p in (*msg.node_positions, *msg.node_velocities, c) for v in (p.x, p.y, p.z)
         ]
         _finite_values((*values, *msg.rest_lengths), "the state")
-        return ns_to_seconds(m.stamp_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)), msg
+        return self._stamp_of(msg), msg
 
     @staticmethod
     def _xyz(points: Sequence[Any]) -> NDArray[np.float64]:
@@ -473,7 +519,7 @@ class RobotCodec:
     def make_frame(self, ns: int, rgb: NDArray[np.uint8], depth: NDArray[np.float32]) -> RgbdFrame:
         if rgb.shape[:2] != depth.shape:
             raise MessageError(f"colour {rgb.shape[:2]} and depth {depth.shape} sizes differ")
-        return RgbdFrame(ns_to_seconds(ns), rgb, depth)
+        return RgbdFrame(self.seconds(ns), rgb, depth)
 
 
 def run_info_from_text(text: str) -> dict[str, Any]:

@@ -18,12 +18,13 @@ travels as two messages (an IMU's raw data and magnetometer, a colour and a dept
 image) has two channels and a :class:`Pairing`: the halves meet on equal header stamps.
 
 This module knows the codec only as :class:`CodecContext` (what encoders and decoders
-may use), so that the codec can read the table without an import cycle.
+may use), so that the codec can read the table without an import cycle. Encoders and
+decoders go through its clock (``seconds``, ``stamp_ns``, ``header``): samples carry
+seconds from the codec's clock origin, messages the robot's own stamps.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -40,8 +41,6 @@ from tensegrity_gym.model.samples import (
     ImuSample,
     RgbdFrame,
     UwbRangeSample,
-    ns_to_seconds,
-    seconds_to_ns,
 )
 
 if TYPE_CHECKING:
@@ -71,7 +70,8 @@ Decoded = tuple[int, Any]
 
 class CodecContext(Protocol):
     """What a kind's encoder and decoder may use of the robot's codec
-    (:class:`hardware.bag.codec.RobotCodec`); decoders raise its ``MessageError``."""
+    (:class:`hardware.bag.codec.RobotCodec`); decoders raise its ``MessageError``.
+    Times ``t`` are sample times (s from the clock origin), stamps robot-clock ns."""
 
     description: RobotDescription
     store: Typestore
@@ -79,8 +79,14 @@ class CodecContext(Protocol):
     node_names: list[str]
     cable_names: list[str]
     actuated_names: list[str]
+    origin_ns: int
+    """Robot-clock ns of sample time 0."""
 
+    def seconds(self, ns: int) -> float: ...
+    def stamp_ns(self, t: float) -> int: ...
     def header(self, t: float, frame_id: str = "") -> Any: ...
+    def imu(self, t: float, frame_id: str, **fields: Any) -> bytes: ...
+    def magnetic_field(self, t: float, frame_id: str, field: Any) -> bytes: ...
     def serialize(self, msg: Any, msgtype: str) -> bytes: ...
     def deserialize(self, raw: m.Raw, msgtype: str) -> Any: ...
     def joint_state(self, t: float, names: Sequence[str], values: NDArray[np.float64]) -> bytes: ...
@@ -138,10 +144,6 @@ class Pairing:
     None: dropped without a count."""
 
 
-def _retime(sample: Any, dt: float) -> Any:
-    return dataclasses.replace(sample, t=sample.t + dt)
-
-
 @dataclass(frozen=True)
 class SensorKind:
     """One kind of sample and everything about its messages (see the module docstring)."""
@@ -154,17 +156,17 @@ class SensorKind:
     channels: tuple[Channel, ...]
     """One, or two for a paired kind (first half, second half)."""
     encode: Callable[[CodecContext, Any], list[bytes]]
-    """(codec, sample) -> the CDR bytes of each channel's message, in channel order."""
+    """(codec, sample) -> the CDR bytes of each channel's message, in channel order,
+    stamped through the codec (``codec.header(sample.t)``, ``codec.stamp_ns``)."""
     decode: Callable[[CodecContext, int, int, m.Raw], Decoded]
     """(codec, channel index, rod index (0 for a fixed topic), CDR bytes) -> (stamp ns,
-    the sample or its half); raises MessageError on bytes that do not fit the robot."""
+    the sample or its half); raises MessageError on bytes that do not fit the robot.
+    The sample's time is ``codec.seconds(stamp)`` (s from the codec's clock origin)."""
     order: float
     """Place among samples with equal stamps (the simulator's order: imu 0 ... rgbd 6)."""
     pairing: Pairing | None = None
     marker: int = 0
     """The channel whose topic in a bag says the run has this kind."""
-    retime: Callable[[Any, float], Any] = _retime
-    """(sample, dt) -> the sample moved dt seconds later (every time it holds)."""
 
     def __post_init__(self) -> None:
         if not self.name.isidentifier():
@@ -296,10 +298,7 @@ def sample_kinds_of_topics(topics: Iterable[str], description: RobotDescription)
 
 def _encode_imu(ctx: CodecContext, s: ImuSample) -> list[bytes]:
     frame = ctx.rod_names[s.rod]
-    return [
-        m.encode_imu(s.t, frame, gyro=s.gyro, accel=s.accel),
-        m.encode_magnetic_field(s.t, frame, s.mag),
-    ]
+    return [ctx.imu(s.t, frame, gyro=s.gyro, accel=s.accel), ctx.magnetic_field(s.t, frame, s.mag)]
 
 
 def _decode_imu(ctx: CodecContext, channel: int, rod: int, raw: m.Raw) -> Decoded:
@@ -313,16 +312,16 @@ def _combine_imu(ctx: CodecContext, ns: int, rod: int, raw: Any, mag: Any) -> Im
     """An ImuSample; no magnetometer message (``mag`` None) reads as NaN."""
     gyro, accel = raw
     field = mag if mag is not None else np.full(3, np.nan)
-    return ImuSample(ns_to_seconds(ns), rod, accel, gyro, field)
+    return ImuSample(ctx.seconds(ns), rod, accel, gyro, field)
 
 
 def _encode_ahrs(ctx: CodecContext, s: AhrsSample) -> list[bytes]:
-    return [m.encode_imu(s.t, ctx.rod_names[s.rod], orientation=s.quaternion)]
+    return [ctx.imu(s.t, ctx.rod_names[s.rod], orientation=s.quaternion)]
 
 
 def _decode_ahrs(ctx: CodecContext, channel: int, rod: int, raw: m.Raw) -> Decoded:
     stamp, quaternion = ctx.decode_ahrs(raw)
-    return stamp, AhrsSample(ns_to_seconds(stamp), rod, quaternion)
+    return stamp, AhrsSample(ctx.seconds(stamp), rod, quaternion)
 
 
 def _encode_encoders(ctx: CodecContext, s: EncoderSample) -> list[bytes]:
@@ -331,7 +330,7 @@ def _encode_encoders(ctx: CodecContext, s: EncoderSample) -> list[bytes]:
 
 def _decode_encoders(ctx: CodecContext, channel: int, rod: int, raw: m.Raw) -> Decoded:
     stamp, values = ctx.decode_joint_state(raw, "actuated")
-    return stamp, EncoderSample(ns_to_seconds(stamp), values)
+    return stamp, EncoderSample(ctx.seconds(stamp), values)
 
 
 def _encode_cable_lengths(ctx: CodecContext, s: CableLengthSample) -> list[bytes]:
@@ -340,7 +339,7 @@ def _encode_cable_lengths(ctx: CodecContext, s: CableLengthSample) -> list[bytes
 
 def _decode_cable_lengths(ctx: CodecContext, channel: int, rod: int, raw: m.Raw) -> Decoded:
     stamp, values = ctx.decode_joint_state(raw, "all")
-    return stamp, CableLengthSample(ns_to_seconds(stamp), values)
+    return stamp, CableLengthSample(ctx.seconds(stamp), values)
 
 
 def _encode_uwb(ctx: CodecContext, s: UwbRangeSample) -> list[bytes]:
@@ -348,7 +347,7 @@ def _encode_uwb(ctx: CodecContext, s: UwbRangeSample) -> list[bytes]:
     uwb_range, time = types["tensegrity_msgs/msg/UwbRange"], types["builtin_interfaces/msg/Time"]
     ranges = []
     for t, (i, j), r in zip(s.times, s.pairs, s.ranges, strict=True):
-        sec, nanosec = m.stamp(float(t))
+        sec, nanosec = divmod(ctx.stamp_ns(float(t)), 1_000_000_000)
         stamp = time(sec=sec, nanosec=nanosec)
         ranges.append(uwb_range(stamp=stamp, initiator=int(i), responder=int(j), range=float(r)))
     msg = types[m.UWB_RANGES](header=ctx.header(s.t), ranges=ranges)
@@ -357,11 +356,7 @@ def _encode_uwb(ctx: CodecContext, s: UwbRangeSample) -> list[bytes]:
 
 def _decode_uwb(ctx: CodecContext, channel: int, rod: int, raw: m.Raw) -> Decoded:
     sample = ctx.decode_uwb(raw)
-    return seconds_to_ns(sample.t), sample
-
-
-def _retime_uwb(s: UwbRangeSample, dt: float) -> UwbRangeSample:
-    return dataclasses.replace(s, t=s.t + dt, times=s.times + dt)
+    return ctx.stamp_ns(sample.t), sample
 
 
 def _encode_contacts(ctx: CodecContext, s: ContactSample) -> list[bytes]:
@@ -375,7 +370,7 @@ def _encode_contacts(ctx: CodecContext, s: ContactSample) -> list[bytes]:
 
 def _decode_contacts(ctx: CodecContext, channel: int, rod: int, raw: m.Raw) -> Decoded:
     sample = ctx.decode_contacts(raw)
-    return seconds_to_ns(sample.t), sample
+    return ctx.stamp_ns(sample.t), sample
 
 
 def _encode_rgbd(ctx: CodecContext, s: RgbdFrame) -> list[bytes]:
@@ -444,7 +439,6 @@ _BUILT_IN_KINDS = (
         _encode_uwb,
         _decode_uwb,
         order=5,
-        retime=_retime_uwb,
     ),
     SensorKind(
         "rgbd",

@@ -6,6 +6,13 @@ logged after command k up to and including the time of command k+1. Within a per
 samples are put in a canonical order (time, then sensor, then rod), which is the
 simulator's own order, so a recorded run reads back bit for bit.
 
+Samples carry seconds from the bag's clock origin (:attr:`BagReader.clock_origin_ns`):
+its first log time floored to a whole second. A bag recorded from the simulator, whose
+clock starts at 0, reads back at the times it was recorded at; a bag stamped in Unix
+time hands out small times, which float seconds hold to the nanosecond, so estimates
+do not depend on where the robot's clock started. Period ends are sample times too;
+skip messages and :class:`LostSpan` keep the bag's own log times.
+
 Documented skips (counted in :attr:`BagReader.skipped`, logged once per kind and
 topic; ``strict=True`` raises instead):
 
@@ -151,7 +158,8 @@ class BagPeriod:
     estimate: Estimate | None
     """The last estimate recorded in the period."""
     t_end: float
-    """Log time (s) of the period's end: the next command, or the last message."""
+    """Sample time (s from the bag's clock origin) of the period's end: the log time of
+    the next command, or of the last message."""
     lost: list[LostSpan] = field(default_factory=list)
     """Damaged chunks whose time overlaps the period: their messages are missing from
     ``samples`` (nothing stands in for them)."""
@@ -194,7 +202,7 @@ class BagReader:
             self._check_types(fixed_topic_types())
             header = self._read_header()
             self.description = self._description(header, description)
-            self.codec = RobotCodec(self.description)
+            self.codec = RobotCodec(self.description, self._first_second())
             self._check_types(self.codec.topics.types)
             self.run_info = self._run_info(header)
             self.calibration = self._calibration(header)
@@ -329,7 +337,22 @@ class BagReader:
             )
         return ns_to_seconds(int(statistics.median(gaps[gaps > 0])))
 
+    def _first_second(self) -> int:
+        """The bag's first log time (ns, as its index or a scan says), floored to a
+        whole second; 0 for a bag without messages."""
+        storage: Any = self._storage
+        meta = storage.metadata if isinstance(storage, SalvagingMcap) else storage.storage.metadata
+        if not meta.message_count:
+            return 0
+        return int(meta.start_time) // 1_000_000_000 * 1_000_000_000
+
     # ------------------------------------------------------------------ facts
+
+    @property
+    def clock_origin_ns(self) -> int:
+        """The robot-clock ns (log time) of sample time 0: the first log time floored to
+        a whole second (see the module docstring)."""
+        return self.codec.origin_ns
 
     @property
     def topics(self) -> dict[str, str]:
@@ -457,7 +480,7 @@ class BagReader:
         start, end = span
         lost = [s for s in self.lost_spans if s.end_ns > start and (last or s.start_ns <= end)]
         return BagPeriod(
-            out.samples, command, out.truth, out.estimate, ns_to_seconds(span[1]), lost
+            out.samples, command, out.truth, out.estimate, self.codec.seconds(end), lost
         )
 
 

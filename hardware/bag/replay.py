@@ -6,6 +6,8 @@ period's ``info["bag_lost"]`` says so). The commands are the bag's: the targets 
 passes to :meth:`step` are ignored (a warning says so once), and each
 :class:`StepResult` carries the recorded command, which the env hands to the estimator.
 The last period has ``ended`` set, which ends the episode (truncated).
+Times are seconds from the bag's clock origin (:attr:`ReplayBackend.clock_origin_ns`,
+its first log time floored to a whole second), ``info`` times included.
 """
 
 from __future__ import annotations
@@ -70,6 +72,12 @@ class ReplayBackend:
         return self.reader.calibration
 
     @property
+    def clock_origin_ns(self) -> int:
+        """Robot-clock ns (the bag's log time) of sample time 0: the bag's first log time
+        floored to a whole second."""
+        return self.reader.clock_origin_ns
+
+    @property
     def next_command(self) -> NDArray[np.float64] | None:
         """The recorded command :meth:`step` will play next (None at the bag's end)."""
         return None if self._next is None else self._next.command
@@ -113,12 +121,18 @@ class ReplayBackend:
     def _info(self, period: BagPeriod) -> dict[str, Any]:
         """``bag_time`` (s): the period's end; ``bag_skipped``: the reader's skip counts
         so far; ``bag_lost``: damaged chunks within the period (their messages are
-        simply missing), as :meth:`LostSpan.as_dict`; ``bag_out_of_range``: commanded and
-        measured rest lengths outside the motors' range so far, by kind."""
+        simply missing), as :meth:`LostSpan.as_dict` with ``start_s`` and ``end_s`` in
+        sample time; ``bag_out_of_range``: commanded and measured rest lengths outside
+        the motors' range so far, by kind."""
+        seconds = self.reader.codec.seconds
+        lost = [
+            {**span.as_dict(), "start_s": seconds(span.start_ns), "end_s": seconds(span.end_ns)}
+            for span in period.lost
+        ]
         return {
             "bag_time": period.t_end,
             "bag_skipped": dict(self.reader.skipped),
-            "bag_lost": [span.as_dict() for span in period.lost],
+            "bag_lost": lost,
             "bag_out_of_range": dict(self.out_of_range),
         }
 

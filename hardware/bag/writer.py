@@ -6,6 +6,10 @@ system every ``flush_period`` seconds of recorded time, so a process that dies (
 crash, SIGKILL) leaves every message up to the last flush on disk, and
 :class:`hardware.bag.reader.BagReader` opens such a bag. Ctrl-C and SIGTERM close the
 bag properly (see ``agents/cli.py``).
+
+Times given to the writer are sample times (s from the source's clock origin); header
+stamps and log times are ``clock_origin_ns`` plus them, the robot's own clock, so a
+replayed bag recorded again has its original stamps.
 """
 
 from __future__ import annotations
@@ -53,6 +57,8 @@ class BagWriter:
             ``control_period`` (s). Written as YAML.
         flush_period: seconds of recorded time between flushes to disk.
         compress: compress each chunk with zstd (a quarter of the size, read as fast).
+        clock_origin_ns: the robot-clock ns of sample time 0 (the source backend's
+            ``clock_origin_ns``): stamps and log times are written as this plus ``t``.
     """
 
     def __init__(
@@ -64,12 +70,13 @@ class BagWriter:
         *,
         flush_period: float = 1.0,
         compress: bool = True,
+        clock_origin_ns: int = 0,
     ) -> None:
         if "control_period" not in run_info:
             raise ValueError("run_info must hold control_period (s)")
         if not flush_period > 0:
             raise ValueError(f"flush_period must be positive, got {flush_period}")
-        self.codec = RobotCodec(description)
+        self.codec = RobotCodec(description, clock_origin_ns)
         self._calibration = calibration
         self._run_info = dict(run_info)
         self._flush_ns = seconds_to_ns(flush_period)
@@ -101,7 +108,7 @@ class BagWriter:
     def _write(self, messages: Iterable[Encoded], t: float) -> None:
         if self.closed:
             raise RuntimeError(f"the bag {self.path} is closed")
-        ns = seconds_to_ns(t)
+        ns = self.codec.stamp_ns(t)
         if self._last_ns is None:  # the header messages open the bag, at its first time
             self._last_ns = self._last_flush_ns = ns
             self._write(self.codec.encode_header(self._calibration, self._run_info, t), t)

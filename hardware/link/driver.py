@@ -17,6 +17,12 @@ listened: a process that was suspended does not blame the robot for the gap.
 ``close()``, an exception in the env, or the interpreter exiting send a stop command
 (hold the present rest lengths) first. A heartbeat goes out at a fixed rate from its
 own thread; the robot holds its motors when heartbeats stop.
+
+The robot stamps its messages with its clock (synchronised with this machine's); each
+``reset`` sets the codec's clock origin (:attr:`ZenohDriver.clock_origin_ns`) to the
+wall clock then, floored to a whole second, so the estimator sees small sample times,
+which float seconds hold to the nanosecond. Commands and heartbeats carry the wall clock
+in whole nanoseconds.
 """
 
 from __future__ import annotations
@@ -48,7 +54,13 @@ from hardware.link.wire import (
 )
 from tensegrity_gym.model.description import DescriptionError, loads_robot
 from tensegrity_gym.model.protocols import StepResult
-from tensegrity_gym.model.samples import GROUND_TRUTH, EncoderSample, ImuSample, RgbdFrame
+from tensegrity_gym.model.samples import (
+    GROUND_TRUTH,
+    EncoderSample,
+    ImuSample,
+    RgbdFrame,
+    ns_to_seconds,
+)
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -181,7 +193,7 @@ class ZenohDriver:
         self._deadline: float | None = None
         self._closed = False
         self.last_heartbeat: float | None = None
-        """Wall-clock time (s) the last heartbeat went out."""
+        """When the last heartbeat went out: sample time (s from the clock origin)."""
         # At interpreter exit, stop the motors; a weak reference, so that the hook
         # does not keep a forgotten driver alive.
         self._at_exit = functools.partial(_close_at_exit, weakref.ref(self))
@@ -192,6 +204,12 @@ class ZenohDriver:
     @property
     def connected(self) -> bool:
         return self._session is not None
+
+    @property
+    def clock_origin_ns(self) -> int:
+        """Robot-clock ns of sample time 0: the wall clock at the latest ``reset``,
+        floored to a whole second (0 before the first)."""
+        return self.codec.origin_ns
 
     def connect(self) -> None:
         """Open the link (no-op if open); :class:`LinkError` after ``timeouts.connect``."""
@@ -251,13 +269,14 @@ class ZenohDriver:
             if time.monotonic() - self._last_activity > grace:
                 self._stop_heartbeat.wait(max(next_beat - time.monotonic(), 0.0))
                 continue
-            sec, nanosec = m.stamp(time.time())
+            now_ns = time.time_ns()
+            sec, nanosec = divmod(now_ns, 1_000_000_000)
             msg = header_type(stamp=time_type(sec=sec, nanosec=nanosec), frame_id="env")
             try:
                 self._heartbeat_pub.put(bytes(self.codec.store.serialize_cdr(msg, HEARTBEAT_TYPE)))
             except Exception:  # the session is closing
                 return
-            self.last_heartbeat = time.time()
+            self.last_heartbeat = self.codec.seconds(now_ns)
             self._stop_heartbeat.wait(max(next_beat - time.monotonic(), 0.0))
 
     def _skip(self, kind: str, topic: str, ns: int | None, why: str) -> None:
@@ -435,6 +454,8 @@ class ZenohDriver:
         """Forget what came before this episode: samples, counts, the robot's header."""
         self._deadline = None
         self._drain()  # what came before this episode is not part of it
+        # Sample times count from this episode's start (whole seconds of the wall clock).
+        self.codec.origin_ns = time.time_ns() // 1_000_000_000 * 1_000_000_000
         self._assembler = SampleAssembler(self.codec, self._skip, order="sort")
         self._skipped.clear()
         with self._inbox_lock:
@@ -527,7 +548,10 @@ class ZenohDriver:
         info = self._link_info(overrun, stalled=quiet > self.timeouts.stall)
         info["link_latency_s"] = time.monotonic() - self._deadline  # what the driver adds
         # How old the freshest sample is, robot clock against ours (synchronised clocks).
-        info["link_newest_age_s"] = time.time() - samples[-1].t if samples else None
+        info["link_newest_age_s"] = None
+        if samples:
+            newest = self.codec.stamp_ns(samples[-1].t)
+            info["link_newest_age_s"] = ns_to_seconds(time.time_ns() - newest)
         return StepResult(samples, info=info, command=command)
 
     def _link_info(self, overrun: bool, stalled: bool) -> dict[str, Any]:
@@ -546,7 +570,9 @@ class ZenohDriver:
         }
 
     def _send_command(self, targets: NDArray[np.float64]) -> None:
-        _, raw = self.codec.encode_command(time.time(), targets)
+        # Stamped with the wall clock: the sample time of now, which the codec turns back
+        # into whole ns of the wall clock exactly.
+        _, raw = self.codec.encode_command(self.codec.seconds(time.time_ns()), targets)
         self._command_pub.put(raw)
         self._last_activity = time.monotonic()
 

@@ -28,6 +28,7 @@ import numpy as np
 from hardware.bag.codec import MessageError, RobotCodec
 from hardware.link.safety import Watchdog, check_fields
 from hardware.link.wire import COMMAND_TOPIC, HEARTBEAT_TOPIC, LinkAddress, LinkError, open_session
+from tensegrity_gym.model.samples import seconds_to_ns
 from tensegrity_gym.sim.backend import SimBackend
 
 if TYPE_CHECKING:
@@ -35,7 +36,7 @@ if TYPE_CHECKING:
 
     from numpy.typing import NDArray
 
-    from hardware.bag.kinds import SensorKind, TopicTable
+    from hardware.bag.kinds import TopicTable
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.samples import Sample
 
@@ -171,7 +172,6 @@ class Emulator:
         self._dropout_until: dict[str, float] = {}
         self._session: Any = None
         self._publishers: dict[str, Any] = {}
-        self._epoch = -np.inf
         rods = [rod.name for rod in description.rods]
         self._stream_of = sensor_streams(self.codec.topics, rods)
         self._streams = sorted(set(self._stream_of.values()))
@@ -261,7 +261,7 @@ class Emulator:
         result = self._backend.reset(self._rng)
         self._sync_clock()
         self._header = self.codec.encode_header(
-            self._backend.calibration, {"control_period": TICK, "emulated": True}, self._epoch
+            self._backend.calibration, {"control_period": TICK, "emulated": True}, 0.0
         )
         self._publish_header()
         now = time.monotonic()
@@ -274,13 +274,9 @@ class Emulator:
         for topic, raw in self._header:
             self._publish_now(topic, raw)
 
-    def _stamped(self, sample: Sample) -> Sample:
-        """The sample stamped with the robot's clock."""
-        kind: SensorKind = self.codec.topics.kind_of(sample)
-        return kind.retime(sample, self._epoch)  # type: ignore[no-any-return]
-
     def _publish_sample(self, sample: Sample, now: float) -> None:
-        for topic, raw in self.codec.encode_sample(self._stamped(sample)):
+        """Its messages, stamped with the robot's clock (the codec's origin)."""
+        for topic, raw in self.codec.encode_sample(sample):
             self._send(topic, raw, now)
 
     def _targets(self, now: float) -> NDArray[np.float64]:
@@ -332,7 +328,6 @@ class Emulator:
         if self.truth:
             truth = backend.ground_truth()
             if truth is not None:
-                truth = dataclasses.replace(truth, t=truth.t + self._epoch)
                 for topic, raw in self.codec.encode_truth(truth):
                     self._send(topic, raw, now, faulty=False)
         self.stats.ticks += 1
@@ -362,11 +357,13 @@ class Emulator:
                 self._stop.wait(-lag)
 
     def _sync_clock(self) -> None:
-        """Stamps are wall-clock time, as a robot's clock is. A tick computes the next
-        TICK seconds of the robot, which are stamped as the TICK just past, so that no
-        sample is published before its stamp. Where the simulation fell behind, the
-        clock jumps forward (never back)."""
-        self._epoch = max(self._epoch, time.time() - self._backend.world.time - TICK)
+        """Stamps are wall-clock time, as a robot's clock is: the codec's origin is the
+        wall clock (ns) at simulation time 0. A tick computes the next TICK seconds of
+        the robot, which are stamped as the TICK just past, so that no sample is
+        published before its stamp. Where the simulation fell behind, the clock jumps
+        forward (never back)."""
+        behind = seconds_to_ns(TICK) + self._backend.world.time_ns
+        self.codec.origin_ns = max(self.codec.origin_ns, time.time_ns() - behind)
 
     def stop(self) -> None:
         self._stop.set()

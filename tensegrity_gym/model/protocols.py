@@ -74,6 +74,13 @@ class Backend(Protocol):
     """Seconds of robot time one :meth:`step` covers."""
 
     @property
+    def clock_origin_ns(self) -> int:
+        """Robot-clock ns of sample time 0: samples carry seconds from it (0 for the
+        simulator; a bag's first log time floored to a second; for a robot, set at each
+        reset). A recording adds it back, so its stamps are the robot's own."""
+        ...
+
+    @property
     def calibration(self) -> SensorCalibration: ...
 
     def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:

@@ -1,10 +1,13 @@
 """Timestamped raw measurements, in SI units: what a robot's sensors give.
 
 The simulator, a hardware driver and a log replay all produce these same types, so
-any estimator runs on any of them. Times are seconds on one clock, each a whole number
-of nanoseconds (``ns_to_seconds(n)``) as ROS stamps are, so a sample survives a trip
-through a bag bit for bit. Quaternions are (x, y, z, w), rotating body vectors into the
-world frame (z up).
+any estimator runs on any of them. Times are seconds from the source's clock origin,
+each a whole number of nanoseconds (``ns_to_seconds(n)``) as ROS stamps are, so a
+sample survives a trip through a bag bit for bit. The origin is the robot-clock ns of
+time 0, the source's ``Backend.clock_origin_ns`` (0 for the simulator, a bag's first log
+time floored to a second, a robot link's wall clock at reset): times stay small, which
+float seconds hold to the nanosecond, whatever the robot's clock reads. Quaternions
+are (x, y, z, w), rotating body vectors into the world frame (z up).
 """
 
 from __future__ import annotations

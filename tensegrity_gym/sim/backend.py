@@ -214,6 +214,8 @@ class SimBackend:
         check_sensor_rates(description, time_step)
         self.description = description
         self.control_period = control_period
+        self.clock_origin_ns = 0
+        """Robot-clock ns of sample time 0: the simulation's clock starts at 0."""
         self.time_step = time_step
         self.camera = camera
         self.gui = gui
