@@ -81,8 +81,10 @@ def test_left_jacobian_is_the_derivative_and_has_its_inverse() -> None:
     [
         (lie.se3_exp, lie.se3_log, lie.se3_inverse, lie.se3_adjoint, 1),
         (lie.se23_exp, lie.se23_log, lie.se23_inverse, lie.se23_adjoint, 2),
+        (lie.sek3_exp, lie.sek3_log, lie.sek3_inverse, lie.sek3_adjoint, 1),
+        (lie.sek3_exp, lie.sek3_log, lie.sek3_inverse, lie.sek3_adjoint, 5),
     ],
-    ids=["SE(3)", "SE_2(3)"],
+    ids=["SE(3)", "SE_2(3)", "SE_k(3), k=1", "SE_k(3), k=5"],
 )
 def test_sek3_group_axioms_round_trips_and_adjoint(exp, log, inverse, adjoint, k) -> None:
     n = len(PHI) - 2  # log is unique below a half turn
@@ -113,3 +115,32 @@ def test_exp_matches_the_matrix_exponential(k: int) -> None:
         for i in range(k):
             A[:3, 3 + i] = xi[3 + 3 * i : 6 + 3 * i]
         np.testing.assert_allclose(exp(xi), expm(A), atol=1e-10)
+
+
+@pytest.mark.parametrize("k", [1, 2, 5])
+def test_sek3_wedge_vee_and_the_adjoint_in_the_algebra(k: int) -> None:
+    """wedge/vee invert each other, exp is the matrix exponential of the wedge, and
+    Ad_X xi^ = X xi^ X^-1, for the generic SE_k(3) functions."""
+    from scipy.linalg import expm
+
+    xi, eta = _tangent(16, k), _tangent(16, k)[::-1]
+    A = lie.sek3_wedge(xi)
+    assert A.shape == (16, 3 + k, 3 + k)
+    np.testing.assert_array_equal(lie.sek3_vee(A), xi)
+    np.testing.assert_array_equal(A[:, 3:, :], 0.0)
+    for one, a in zip(xi[:6], A[:6], strict=True):
+        np.testing.assert_allclose(lie.sek3_exp(one), expm(a), atol=1e-10)
+    X = lie.sek3_exp(xi)
+    lhs = lie.sek3_wedge(np.einsum("nij,nj->ni", lie.sek3_adjoint(X), eta))
+    rhs = X @ lie.sek3_wedge(eta) @ lie.sek3_inverse(X)
+    np.testing.assert_allclose(lhs, rhs, atol=1e-9)
+    if k == 2:  # the generic functions are the SE_2(3) ones
+        np.testing.assert_array_equal(lie.sek3_exp(xi), lie.se23_exp(xi))
+        np.testing.assert_array_equal(lie.sek3_adjoint(X), lie.se23_adjoint(X))
+
+
+def test_sek3_rejects_sizes_of_no_group() -> None:
+    with pytest.raises(ValueError, match="3 \\+ 3k"):
+        lie.sek3_exp(np.zeros(7))
+    with pytest.raises(ValueError, match="3 \\+ k"):
+        lie.sek3_log(np.eye(3))

@@ -8,7 +8,9 @@ Conventions used everywhere in the project:
   SE_2(3) ``xi = (phi, nu, rho)`` (rotation, velocity, position), (..., 9), the order of
   the right-invariant EKF of papers/002.
 - Group elements are matrices: SO(3) (..., 3, 3), SE(3) (..., 4, 4), SE_2(3) (..., 5, 5)
-  ``[[R, v, p], [0, 1, 0], [0, 0, 1]]``.
+  ``[[R, v, p], [0, 1, 0], [0, 0, 1]]``; SE_k(3) (..., 3 + k, 3 + k) ``[[R, t_1 .. t_k],
+  [0, I_k]]`` with tangent ``(phi, t_1, ..., t_k)``, (..., 3 + 3k): the contact-aided
+  InEKF's SE_{2+K}(3), whose ``t`` are velocity, position and K contact points.
 
 Every function takes leading batch dimensions. Small angles use series expansions, so
 ``exp`` and ``log`` are accurate down to zero; ``so3_log`` goes through the quaternion
@@ -41,6 +43,12 @@ __all__ = [
     "se23_exp",
     "se23_inverse",
     "se23_log",
+    "sek3_adjoint",
+    "sek3_exp",
+    "sek3_inverse",
+    "sek3_log",
+    "sek3_vee",
+    "sek3_wedge",
     "so3_exp",
     "so3_left_jacobian",
     "so3_left_jacobian_inverse",
@@ -323,3 +331,65 @@ def se23_inverse(X: ArrayLike) -> NDArray[np.float64]:
 def se23_adjoint(X: ArrayLike) -> NDArray[np.float64]:
     """Adjoints (..., 9, 9) of extended poses (..., 5, 5), for xi = (phi, nu, rho)."""
     return _sek3_adjoint(_f64(X), 2)
+
+
+# ------------------------------------------------------------------- SE_k(3)
+
+
+def _k_of_tangent(xi: NDArray[np.float64]) -> int:
+    n = int(xi.shape[-1])
+    if n < 6 or n % 3:
+        raise ValueError(f"an SE_k(3) tangent has 3 + 3k >= 6 entries, got {n}")
+    return n // 3 - 1
+
+
+def _k_of_group(X: NDArray[np.float64]) -> int:
+    if X.ndim < 2 or X.shape[-1] != X.shape[-2] or X.shape[-1] < 4:
+        raise ValueError(f"an SE_k(3) element is (..., 3 + k, 3 + k), k >= 1; got {X.shape}")
+    return int(X.shape[-1]) - 3
+
+
+def sek3_wedge(xi: ArrayLike) -> NDArray[np.float64]:
+    """Lie algebra matrices (..., 3 + k, 3 + k) ``[[hat(phi), t_1 .. t_k], [0, 0]]`` of
+    tangents xi = (phi, t_1, ..., t_k), (..., 3 + 3k); k is read off the size."""
+    xi = _f64(xi)
+    k = _k_of_tangent(xi)
+    out = np.zeros((*xi.shape[:-1], 3 + k, 3 + k))
+    out[..., :3, :3] = hat(xi[..., :3])
+    out[..., :3, 3:] = np.swapaxes(xi[..., 3:].reshape(*xi.shape[:-1], k, 3), -1, -2)
+    return out
+
+
+def sek3_vee(A: ArrayLike) -> NDArray[np.float64]:
+    """Tangents (..., 3 + 3k) of Lie algebra matrices (..., 3 + k, 3 + k); inverse of
+    :func:`sek3_wedge`."""
+    A = _f64(A)
+    k = _k_of_group(A)
+    t = np.swapaxes(A[..., :3, 3:], -1, -2).reshape(*A.shape[:-2], 3 * k)
+    return np.concatenate([vee(A[..., :3, :3]), t], axis=-1)
+
+
+def sek3_exp(xi: ArrayLike) -> NDArray[np.float64]:
+    """SE_k(3) elements (..., 3 + k, 3 + k) of tangents (..., 3 + 3k)."""
+    xi = _f64(xi)
+    return _sek3_exp(xi, _k_of_tangent(xi))
+
+
+def sek3_log(X: ArrayLike) -> NDArray[np.float64]:
+    """Tangents (..., 3 + 3k) of SE_k(3) elements (..., 3 + k, 3 + k); inverse of
+    :func:`sek3_exp` for rotations below a half turn."""
+    X = _f64(X)
+    return _sek3_log(X, _k_of_group(X))
+
+
+def sek3_inverse(X: ArrayLike) -> NDArray[np.float64]:
+    """Inverses (..., 3 + k, 3 + k) of SE_k(3) elements, without a general inverse."""
+    X = _f64(X)
+    return _sek3_inverse(X, _k_of_group(X))
+
+
+def sek3_adjoint(X: ArrayLike) -> NDArray[np.float64]:
+    """Adjoints (..., 3 + 3k, 3 + 3k) of SE_k(3) elements: ``X wedge(xi) X^-1 =
+    wedge(Ad_X xi)``."""
+    X = _f64(X)
+    return _sek3_adjoint(X, _k_of_group(X))
