@@ -11,6 +11,7 @@ from tensegrity_gym.model.checks import check_number
 from tensegrity_gym.model.description import RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
+from tensegrity_gym.sim.terrain import Terrain, terrain_builder
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -77,10 +78,12 @@ def make_backend(
     time_step: float,
     gui: bool,
     spawn_radius: float,
+    terrain: str | os.PathLike[str] | Terrain = "flat",
 ) -> Backend:
-    """The backend a ``driver`` names: None for PyBullet, ``"zenoh/tcp/HOST:PORT"`` for
-    a robot on the network (:class:`hardware.link.ZenohDriver`), ``"bag:PATH"`` to
-    replay a recorded bag, or a Backend object (its robot must be ``description``'s)."""
+    """The backend a ``driver`` names: None for PyBullet (on ``terrain``, see
+    :mod:`tensegrity_gym.sim.terrain`), ``"zenoh/tcp/HOST:PORT"`` for a robot on the
+    network (:class:`hardware.link.ZenohDriver`), ``"bag:PATH"`` to replay a recorded
+    bag, or a Backend object (its robot must be ``description``'s)."""
     if driver is None:
         from tensegrity_gym.sim.backend import SimBackend
 
@@ -90,6 +93,7 @@ def make_backend(
             time_step=time_step,
             gui=gui,
             spawn_radius=spawn_radius,
+            terrain=terrain,
         )
     if isinstance(driver, str):
         if driver.startswith("zenoh/"):
@@ -128,6 +132,8 @@ def _check_arguments(
     spawn_radius: object,
     control_period: object,
     time_step: object,
+    terrain: object,
+    driver: object,
 ) -> None:
     """Refuse a bad argument of ``make`` by name, before anything is built."""
     modes = TensegrityEnv.metadata["render_modes"]
@@ -142,6 +148,15 @@ def _check_arguments(
         raise ValueError(
             f"make: time_step={time_step!r} is longer than control_period={control_period!r}"
         )
+    try:
+        terrain_builder(terrain)  # a height map file is read (and checked) here
+    except ValueError as err:
+        raise ValueError(f"make: {err}") from None
+    if driver is not None and not (isinstance(terrain, str) and terrain == "flat"):
+        raise ValueError(
+            f"make: terrain={terrain!r} shapes the simulator's ground; driver={driver!r} "
+            "has its own: leave terrain at 'flat'"
+        )
 
 
 def make_env(
@@ -155,6 +170,7 @@ def make_env(
     spawn_radius: float = 0.0,
     control_period: float = 0.1,
     time_step: float = 0.001,
+    terrain: str | Path | Terrain = "flat",
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -177,6 +193,11 @@ def make_env(
         render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (PyBullet's window).
         spawn_radius: the start position is drawn within this radius (m).
         control_period, time_step: seconds per env step and per physics step.
+        terrain: the simulator's ground (:mod:`tensegrity_gym.sim.terrain`): ``"flat"``
+            (the default), ``"valley"`` (a ring-shaped trough around the start),
+            ``"rough"`` (smooth random bumps drawn at each reset from its seed), a lab's
+            registered name, a ``.npy``/``.png`` height map with its ``.yaml`` sidecar,
+            or a :class:`~tensegrity_gym.sim.terrain.Terrain`. No estimator is told it.
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -191,6 +212,8 @@ def make_env(
         spawn_radius=spawn_radius,
         control_period=control_period,
         time_step=time_step,
+        terrain=terrain,
+        driver=driver,
     )
     # The task checks its own arguments before anything is started.
     spec.create(description, control_period, task_arguments)
@@ -201,6 +224,7 @@ def make_env(
         time_step=time_step,
         gui=render_mode == "human",
         spawn_radius=spawn_radius,
+        terrain=terrain,
     )
     try:
         return _assemble(backend, estimator, spec, description, task_arguments, record_dir,

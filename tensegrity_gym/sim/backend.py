@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import replace
 from functools import lru_cache
 from typing import TYPE_CHECKING, Any
@@ -9,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from tensegrity_gym.model.kinematics import center_of_mass
-from tensegrity_gym.model.lie import quat_multiply
+from tensegrity_gym.model.lie import quat_multiply, quat_rotate
 from tensegrity_gym.model.protocols import SensorCalibration, StepResult
 from tensegrity_gym.model.samples import GROUND_TRUTH, GroundTruth
 from tensegrity_gym.sim.sensors import (
@@ -21,15 +22,21 @@ from tensegrity_gym.sim.sensors import (
     SensorSchedule,
     UwbModel,
 )
+from tensegrity_gym.sim.terrain import terrain_builder
 from tensegrity_gym.sim.world import PhysicsWorld
 
 if TYPE_CHECKING:
+    import os
+
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.protocols import ReadyCheck
     from tensegrity_gym.model.samples import Sample
+    from tensegrity_gym.sim.terrain import Terrain
     from tensegrity_gym.sim.world import Snapshot
+
+    _Segment = tuple[NDArray[np.float64], NDArray[np.float64], tuple[int, int, int]]
 
 __all__ = ["SettleError", "SimBackend", "check_sensor_rates", "settled_pose"]
 
@@ -56,6 +63,11 @@ _REST_NODE_SPEED = 1.0e-6  # m/s
 _REST_WINDOW = 1.0  # s
 _REST_SAMPLE = 0.01  # s
 _MAX_EXTRA_SETTLE = 60.0  # s
+
+# On uneven ground the settled pose is lifted until no rod sinks in (checked at this
+# many points along each rod), then rests this long before the episode's clock starts.
+_ROD_POINTS = 9
+_TERRAIN_SETTLE = 0.5  # s
 
 
 @lru_cache(maxsize=8)
@@ -176,6 +188,37 @@ def check_sensor_rates(description: RobotDescription, time_step: float) -> None:
             )
 
 
+_GRID_RGB = (110, 110, 100)
+
+
+def _grid_segments(
+    cx: float, cy: float, length: float, terrain: Terrain | None
+) -> tuple[list[_Segment], int]:
+    """Ground grid lines 0.5 L apart over 16 L around (cx, cy) (m), L = ``length`` (m),
+    and the points to draw each with: at z = 0 on flat ground (``terrain`` None), else
+    draped over the terrain in pieces 0.5 L long, 0.02 L above it so that the surface
+    does not hide them."""
+    step = 0.5 * length
+    span = 8.0 * length
+    gx = np.round(cx / step) * step
+    gy = np.round(cy / step) * step
+    offsets = np.arange(-span, span + 1e-9, step)
+    segments: list[_Segment] = []
+    for off in offsets:
+        for a, b in (
+            ([gx + off, gy - span, 0.0], [gx + off, gy + span, 0.0]),
+            ([gx - span, gy + off, 0.0], [gx + span, gy + off, 0.0]),
+        ):
+            start, end = np.array(a), np.array(b)
+            if terrain is None:
+                segments.append((start, end, _GRID_RGB))
+                continue
+            pts = start + (offsets[:, None] + span) / (2.0 * span) * (end - start)
+            pts[:, 2] = terrain.height_at(pts[:, 0], pts[:, 1]) + 0.02 * length
+            segments += [(p, q, _GRID_RGB) for p, q in itertools.pairwise(pts)]
+    return segments, 400 if terrain is None else 40
+
+
 def _yaw_quaternion(yaw: float) -> NDArray[np.float64]:
     return np.array([0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
 
@@ -193,6 +236,10 @@ class SimBackend:
             origin, at a uniformly random heading.
         settle_time: seconds the nominal shape settles for at least before the first
             episode; settling goes on until the robot is still (see :func:`settled_pose`).
+        terrain: the ground (:mod:`tensegrity_gym.sim.terrain`): ``"flat"``, ``"valley"``,
+            ``"rough"``, a lab's registered name, a ``.npy``/``.png`` height map or a
+            :class:`~tensegrity_gym.sim.terrain.Terrain`; built at each reset from the
+            reset's rng. Only the simulation sees it: no estimator is told the map.
     """
 
     def __init__(
@@ -205,6 +252,7 @@ class SimBackend:
         gui: bool = False,
         spawn_radius: float = 0.0,
         settle_time: float = 5.0,
+        terrain: str | os.PathLike[str] | Terrain = "flat",
     ) -> None:
         steps = control_period / time_step
         if steps < 1 or abs(steps - round(steps)) > 1e-9:
@@ -221,6 +269,10 @@ class SimBackend:
         self.gui = gui
         self.spawn_radius = spawn_radius
         self.settle_time = settle_time
+        self.terrain_source = terrain
+        self._build_terrain = terrain_builder(terrain)
+        self.terrain: Terrain | None = None
+        """This episode's ground, from :meth:`reset` on (for tests and tools)."""
         self._n_steps = round(steps)
         self._world: PhysicsWorld | None = None
         s = description.sensors
@@ -257,6 +309,7 @@ class SimBackend:
             "gui": False,
             "spawn_radius": self.spawn_radius,
             "settle_time": self.settle_time,
+            "terrain": self.terrain_source,
         }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -299,6 +352,9 @@ class SimBackend:
         self._rng = rng
         positions, quats = settled_pose(d, self.time_step, self.settle_time)
         world = self.world
+        # Flat ground draws nothing from the rng: episodes stay as they were without it.
+        terrain = self.terrain = self._build_terrain(d, rng)
+        world.terrain = terrain
         # A fresh simulation each episode: PyBullet keeps contact caches otherwise, and
         # the same seed must give the same episode bit for bit.
         world._build()
@@ -312,7 +368,11 @@ class SimBackend:
         qz = _yaw_quaternion(yaw)
         c, s = np.cos(yaw), np.sin(yaw)
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        world.set_rod_states(positions @ rot.T + shift, quat_multiply(qz, quats))
+        placed, quats = positions @ rot.T + shift, quat_multiply(qz, quats)
+        if world.flat_ground:
+            world.set_rod_states(placed, quats)
+        else:
+            self._rest_on(terrain, placed, quats)
         self._diverged = False
 
         self.uwb.reset(rng)
@@ -329,6 +389,25 @@ class SimBackend:
         for sched in self._schedules.values():
             sched.due(0.0)  # the t = 0 samples are taken below
         return StepResult(self._sample({name: [snap] for name in self._schedules}, rng))
+
+    def _rest_on(
+        self, terrain: Terrain, positions: NDArray[np.float64], quaternions: NDArray[np.float64]
+    ) -> None:
+        """Put the rods, centres (r, 3) and quaternions (r, 4) of a pose settled on the
+        plane z = 0, onto ``terrain``: lifted until no rod sinks in, then resting for
+        :data:`_TERRAIN_SETTLE` seconds; the clock then starts at 0."""
+        world = self.world
+        rods = self.description.rods
+        half = np.array([[0.0, 0.0, 0.5 * rod.length] for rod in rods])
+        arm = quat_rotate(quaternions, half)  # centre to second endcap (r, 3)
+        along = np.linspace(-1.0, 1.0, _ROD_POINTS)
+        points = positions[:, None, :] + along[None, :, None] * arm[:, None, :]
+        radius = np.repeat([rod.endcap_radius for rod in rods], _ROD_POINTS)
+        lift = max(terrain.lift(points.reshape(-1, 3), radius), 0.0)
+        world.set_rod_states(positions + np.array([0.0, 0.0, lift]), quaternions)
+        n = round(_TERRAIN_SETTLE / self.time_step)
+        world.advance(n, world.targets, [False] * n)
+        world.time_ns = 0
 
     def sample_kinds(self) -> frozenset[str]:
         """The kinds its sensor models produce for the sensors the robot carries
@@ -386,7 +465,7 @@ class SimBackend:
         if "cable_length" in snaps:
             samples += self.cable_length.sample(snaps["cable_length"], rng)
         if "contact" in snaps:
-            samples += self.contact.sample(snaps["contact"])
+            samples += self.contact.sample(self._above_ground(snaps["contact"]))
         if "uwb" in snaps:
             samples += self.uwb.sample(snaps["uwb"], rng)
         if self._renders:
@@ -395,6 +474,20 @@ class SimBackend:
             samples.append(self.camera_model.frame(t, rgb, depth, rng))
         samples.sort(key=lambda s: s.t)  # stable: same-time samples keep sensor order
         return samples
+
+    def _above_ground(self, snaps: list[Snapshot]) -> list[Snapshot]:
+        """The snapshots with each node's z replaced by its height above the terrain
+        along the ground's normal, for the contact model (which measures from z = 0):
+        a contact sensor feels the ground it touches. Unchanged on flat ground."""
+        terrain = self.terrain
+        if terrain is None or terrain.is_flat:
+            return snaps
+        out = []
+        for snap in snaps:
+            nodes = np.array(snap.node_positions)
+            nodes[:, 2] = terrain.clearance(nodes, 0.0)
+            out.append(replace(snap, node_positions=nodes.tolist()))
+        return out
 
     def _finite(self, snap: Snapshot) -> bool:
         pos = np.asarray(snap.rod_positions)
@@ -442,10 +535,12 @@ class SimBackend:
         centre = truth.com if truth is not None else np.zeros(3)
         length = self.description.characteristic_length
         cx, cy, cz = (float(v) for v in centre)
+        terrain = self.terrain if self.terrain is not None and not self.terrain.is_flat else None
+        below = 0.0 if terrain is None else float(terrain.height_at(cx, cy))
         cam = replace(
             self.description.sensors.camera,
             position=(cx + 0.8 * length, cy - 1.7 * length, cz + 1.1 * length),
-            target=(cx, cy, 0.5 * cz),
+            target=(cx, cy, 0.5 * cz if terrain is None else below + 0.5 * (cz - below)),
             near=0.05 * length,
             far=40.0 * length,
         )
@@ -455,19 +550,10 @@ class SimBackend:
             for k, (i, j) in enumerate(self.description.cable_nodes):
                 colour = (250, 250, 250) if self.description.cables[k].actuated else (40, 40, 40)
                 segments.append((x[i], x[j], colour))
-        step = 0.5 * length
-        span = 8.0 * length
-        gx = np.round(cx / step) * step
-        gy = np.round(cy / step) * step
-        for off in np.arange(-span, span + 1e-9, step):
-            grid = (110, 110, 100)
-            segments.append(
-                (np.array([gx + off, gy - span, 0.0]), np.array([gx + off, gy + span, 0.0]), grid)
-            )
-            segments.append(
-                (np.array([gx - span, gy + off, 0.0]), np.array([gx + span, gy + off, 0.0]), grid)
-            )
-        rgb, _ = self.world.camera_image(cam, width, height, segments)
+        points = [400] * len(segments)
+        grid, grid_points = _grid_segments(cx, cy, length, terrain)
+        points += [grid_points] * len(grid)
+        rgb, _ = self.world.camera_image(cam, width, height, segments + grid, points)
         return rgb
 
     def stop(self) -> None:

@@ -31,6 +31,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import CameraConfig, RobotDescription
+    from tensegrity_gym.sim.terrain import Terrain
 
 __all__ = ["PhysicsWorld", "Snapshot"]
 
@@ -49,17 +50,27 @@ class Snapshot:
 
 
 class PhysicsWorld:
-    """A PyBullet client holding one robot on flat ground.
+    """A PyBullet client holding one robot on the ground.
 
     Args:
         description: the robot.
         time_step: physics step (s).
         gui: open PyBullet's window instead of a headless client.
+        terrain: the ground: None or a flat one is the infinite plane z = 0, another a
+            heightfield whose surface is the map's heights; :meth:`_build` (each
+            episode) builds the current :attr:`terrain`.
     """
 
-    def __init__(self, description: RobotDescription, time_step: float, gui: bool = False) -> None:
+    def __init__(
+        self,
+        description: RobotDescription,
+        time_step: float,
+        gui: bool = False,
+        terrain: Terrain | None = None,
+    ) -> None:
         self.description = description
         self.time_step = time_step
+        self.terrain = terrain
         if gui and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
             # PyBullet's GUI ends the whole process when it finds no X server.
             raise RuntimeError(
@@ -110,12 +121,16 @@ class PhysicsWorld:
         pybullet.setGravity(0.0, 0.0, -d.gravity, physicsClientId=c)
         pybullet.setTimeStep(self.time_step, physicsClientId=c)
         pybullet.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=c)
-        plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=c)
-        # Headless, the floor is drawn in a client of its own (see camera_image) and is
-        # transparent here (with no visual at all TinyRenderer would draw the collision
-        # plane); the GUI window shows it.
-        floor_visual = _floor_visual(c, alpha=1.0 if self._gui else 0.0)
-        self.ground = pybullet.createMultiBody(0.0, plane, floor_visual, physicsClientId=c)
+        terrain = self.terrain
+        if terrain is None or terrain.is_flat:
+            plane = pybullet.createCollisionShape(pybullet.GEOM_PLANE, physicsClientId=c)
+            # Headless, the floor is drawn in a client of its own (see camera_image) and
+            # is transparent here (with no visual at all TinyRenderer would draw the
+            # collision plane); the GUI window shows it.
+            floor_visual = _floor_visual(c, alpha=1.0 if self._gui else 0.0)
+            self.ground = pybullet.createMultiBody(0.0, plane, floor_visual, physicsClientId=c)
+        else:
+            self.ground = _heightfield(c, terrain)
         pybullet.changeDynamics(
             self.ground,
             -1,
@@ -164,6 +179,25 @@ class PhysicsWorld:
                     body, -1, shapeIndex=shape, rgbaColor=list(rod.color), physicsClientId=c
                 )
             self.bodies.append(body)
+
+    @property
+    def flat_ground(self) -> bool:
+        """The ground is the plane z = 0 (no terrain, or a flat one)."""
+        return self.terrain is None or self.terrain.is_flat
+
+    def ground_heights(self, xy: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The ground's surface height (m) under each world (x, y) of ``xy`` (k, 2) (m),
+        by a vertical ray test (k,); NaN where the ray meets a rod first or no ground."""
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        terrain = self.terrain
+        top, bottom = 1.0, -1.0
+        if terrain is not None and not terrain.is_flat:
+            top += float(terrain.heights.max())
+            bottom += float(terrain.heights.min())
+        starts = [[x, y, top] for x, y in pts.tolist()]
+        ends = [[x, y, bottom] for x, y in pts.tolist()]
+        hits = pybullet.rayTestBatch(starts, ends, physicsClientId=self.client)
+        return np.array([h[3][2] if h[0] == self.ground else np.nan for h in hits])
 
     # ------------------------------------------------------------------ state access
 
@@ -363,12 +397,14 @@ class PhysicsWorld:
         segments: Sequence[
             tuple[NDArray[np.float64], NDArray[np.float64], tuple[int, int, int]]
         ] = (),
+        segment_points: Sequence[int] | None = None,
     ) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
         """RGB (H, W, 3) and metric depth along the optical axis (H, W) from ``camera``.
 
         ``segments`` are (start (3,), end (3,), colour) lines drawn over the colour image
         for people (cables, a ground grid); TinyRenderer cannot draw lines itself. They
-        are hidden where the scene is nearer to the camera.
+        are hidden where the scene is nearer to the camera. Each is drawn as that many
+        points of ``segment_points`` (400 each by default).
         """
         w = width or camera.width
         h = height or camera.height
@@ -379,32 +415,23 @@ class PhysicsWorld:
             camera.vertical_fov, w / h, camera.near, camera.far, physicsClientId=self.client
         )
         rgb, zb = _render(self.client, w, h, view, proj)
-        # TinyRenderer spends ~90 % of a frame filling the floor's screen-sized
-        # triangles, so the floor is rendered once per camera pose in a client holding
-        # only the floor, and the robot is z-composited over it: the same pixels as
-        # one render of both (tested), at a tenth of the cost for a fixed camera.
-        floor_rgb, floor_zb = self._floor_image(w, h, view, proj)
-        floor_nearer = floor_zb <= zb
-        rgb[floor_nearer] = floor_rgb[floor_nearer]
-        zb = np.where(floor_nearer, floor_zb, zb)
+        if self.flat_ground:
+            # TinyRenderer spends ~90 % of a frame filling the floor's screen-sized
+            # triangles, so the floor is rendered once per camera pose in a client
+            # holding only the floor, and the robot is z-composited over it: the same
+            # pixels as one render of both (tested), at a tenth of the cost for a fixed
+            # camera. A heightfield is drawn with the robot.
+            floor_rgb, floor_zb = self._floor_image(w, h, view, proj)
+            floor_nearer = floor_zb <= zb
+            rgb[floor_nearer] = floor_rgb[floor_nearer]
+            zb = np.where(floor_nearer, floor_zb, zb)
         near, far = camera.near, camera.far
         depth = (far * near / (far - (far - near) * zb)).astype(np.float32)
         if segments:
             # Matrices are column-major 4x4 lists.
             clip_from_world = np.asarray(proj).reshape(4, 4).T @ np.asarray(view).reshape(4, 4).T
-            for start, end, colour in segments:
-                n = 400
-                pts = start + np.linspace(0.0, 1.0, n)[:, None] * (end - start)
-                clip = np.c_[pts, np.ones(n)] @ clip_from_world.T
-                front = clip[:, 3] > 1e-6
-                ndc = clip[front, :3] / clip[front, 3:4]
-                u = ((ndc[:, 0] + 1.0) * 0.5 * w).astype(int)
-                v = ((1.0 - ndc[:, 1]) * 0.5 * h).astype(int)
-                zbuf = 0.5 * (ndc[:, 2] + 1.0)
-                ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-                u, v, zbuf = u[ok], v[ok], zbuf[ok]
-                seen = zbuf <= zb[v, u] + 1e-4
-                rgb[v[seen], u[seen]] = colour
+            n = np.full(len(segments), 400) if segment_points is None else segment_points
+            _draw_segments(rgb, zb, clip_from_world, segments, np.asarray(n, dtype=np.intp))
         return rgb, depth
 
     def _floor_image(
@@ -442,17 +469,87 @@ class PhysicsWorld:
             self.client = -1
 
 
+_FLOOR_RGB = [0.55, 0.55, 0.5]
+
+
 def _floor_visual(client: int, alpha: float = 1.0) -> int:
     """The floor's visual shape: a thin grey slab whose top face is z = 0."""
     return int(
         pybullet.createVisualShape(
             pybullet.GEOM_BOX,
             halfExtents=[50.0, 50.0, 0.0005],
-            rgbaColor=[0.55, 0.55, 0.5, alpha],
+            rgbaColor=[*_FLOOR_RGB, alpha],
             visualFramePosition=[0.0, 0.0, -0.0005],
             physicsClientId=client,
         )
     )
+
+
+def _draw_segments(
+    rgb: NDArray[np.uint8],
+    zb: NDArray[np.float64],
+    clip_from_world: NDArray[np.float64],
+    segments: Sequence[tuple[NDArray[np.float64], NDArray[np.float64], tuple[int, int, int]]],
+    points: NDArray[np.intp],
+) -> None:
+    """Draw line ``segments`` (start (3,), end (3,), colour) into ``rgb`` (h, w, 3), the
+    i-th as ``points[i]`` >= 2 evenly spaced points, hidden where the depth buffer ``zb``
+    (h, w) is nearer; a later segment over an earlier one. All at once: a grid draped
+    over a terrain has thousands of pieces."""
+    h, w = zb.shape
+    which = np.repeat(np.arange(len(segments)), points)
+    first_point = np.cumsum(points) - points
+    # np.linspace(0, 1, n) point by point: k * (1 / (n - 1)), the last exactly 1.
+    k = np.arange(len(which)) - first_point[which]
+    t = k * (1.0 / (points[which] - 1.0))
+    t[k == points[which] - 1] = 1.0
+    starts = np.array([s for s, _, _ in segments], dtype=np.float64)[which]
+    ends = np.array([e for _, e, _ in segments], dtype=np.float64)[which]
+    pts = starts + t[:, None] * (ends - starts)
+    clip = np.c_[pts, np.ones(len(pts))] @ clip_from_world.T
+    front = clip[:, 3] > 1e-6
+    ndc = clip[front, :3] / clip[front, 3:4]
+    which = which[front]
+    u = ((ndc[:, 0] + 1.0) * 0.5 * w).astype(int)
+    v = ((1.0 - ndc[:, 1]) * 0.5 * h).astype(int)
+    zbuf = 0.5 * (ndc[:, 2] + 1.0)
+    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    u, v, zbuf, which = u[ok], v[ok], zbuf[ok], which[ok]
+    seen = zbuf <= zb[v, u] + 1e-4
+    pixel = (v * w + u)[seen][::-1]
+    # The first of each pixel in reverse order is the last segment drawn over it.
+    pixel, first = np.unique(pixel, return_index=True)
+    colours = np.array([c for _, _, c in segments], dtype=np.uint8)
+    rgb.reshape(-1, 3)[pixel] = colours[which[seen][::-1][first]]
+
+
+def _heightfield(client: int, terrain: Terrain) -> int:
+    """A static body whose surface is ``terrain``'s heights at their world (x, y, z).
+
+    PyBullet's heightfield takes its data with x varying fastest (``numHeightfieldRows``
+    points along x) and centres the grid on its body's origin, in z on the mid-height of
+    the data's range: the body is placed at the map's centre and that mid-height. It has
+    no visual shape: TinyRenderer and the GUI draw the collision mesh, in the floor's
+    colour.
+    """
+    h = terrain.heights
+    rows, cols = h.shape
+    x0, x1, y0, y1 = terrain.extent
+    shape = pybullet.createCollisionShape(
+        pybullet.GEOM_HEIGHTFIELD,
+        meshScale=[terrain.cell_size, terrain.cell_size, 1.0],
+        heightfieldData=h.ravel().tolist(),
+        numHeightfieldRows=cols,
+        numHeightfieldColumns=rows,
+        physicsClientId=client,
+    )
+    centre = [0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (float(h.min()) + float(h.max()))]
+    body = int(pybullet.createMultiBody(0.0, shape, -1, centre, physicsClientId=client))
+    # No texture: TinyRenderer's default checker would split the map in four.
+    pybullet.changeVisualShape(
+        body, -1, textureUniqueId=-1, rgbaColor=[*_FLOOR_RGB, 1.0], physicsClientId=client
+    )
+    return body
 
 
 def _render(
