@@ -42,6 +42,9 @@ class Estimate:
     rejected: Mapping[str, int] | None = None
     """Measurements rejected as physically implausible since the last reset, counted by
     kind (e.g. ``"uwb_range_too_long"``); None where the method does not count them."""
+    pose_covariance: NDArray[np.float64] | None = None
+    """Covariance of the body pose where the method tracks one (the invariant EKF), (6, 6):
+    rotation error (rad, world frame) then position (m)."""
 
     def is_finite(self) -> bool:
         return bool(

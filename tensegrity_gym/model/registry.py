@@ -236,6 +236,17 @@ register_estimator(
     needs={"rgbd": "RGB-D camera frames", "cable_lengths": "cable-length sensors"},
 )
 register_estimator(
+    "inekf",
+    "estimation.inekf:InekfEstimator",
+    requires=("imu", "encoders"),
+    robots=("three_bar", "three_bar_large"),
+    summary="the proprioceptive invariant EKF of papers/002 (IMU, encoders, contacts)",
+    needs={
+        "imu": "the base rod's IMU, to propagate the pose",
+        "encoders": "motor encoders, to reconstruct the shape",
+    },
+)
+register_estimator(
     "oracle",
     "estimation.oracle:OracleEstimator",
     requires=(GROUND_TRUTH,),

@@ -1,0 +1,111 @@
+"""Parameters of the proprioceptive estimator (``estimator="inekf"``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+from estimation.health import HealthParams
+from estimation.inekf.filter import InekfNoise
+from estimation.inekf.shape import ShapeConfig
+
+if TYPE_CHECKING:
+    from estimation.inekf.contacts import ContactThresholds
+    from tensegrity_gym.model.description import RobotDescription
+
+__all__ = ["CONTACT_SOURCES", "InekfConfig", "noise_from_description"]
+
+BIAS_WALK = 1e-5
+"""Random-walk density of both IMU biases (per sqrt(Hz)): a bias that changes slowly over
+a run (the simulator's is constant), so that the filter keeps learning it."""
+CONTACT_SLIP = 0.05
+"""m/s/sqrt(Hz): an endcap's slip in contact, papers/002 table I."""
+
+
+def noise_from_description(description: RobotDescription) -> InekfNoise:
+    """The densities of the robot's IMU: its per-sample noise (the description's
+    ``accel_noise``, ``gyro_noise`` at ``rate``) over sqrt(rate)."""
+    imu = description.sensors.imu
+    root = math.sqrt(imu.rate)
+    return InekfNoise(
+        gyro=imu.gyro_noise / root,
+        accel=imu.accel_noise / root,
+        gyro_bias=BIAS_WALK,
+        accel_bias=BIAS_WALK,
+        contact_velocity=CONTACT_SLIP,
+    )
+
+
+CONTACT_SOURCES = ("auto", "sensors", "shape")
+"""Where contacts come from: the contact sensors (``"sensors"``), the shape and gravity
+(``"shape"``), or the sensors where the robot has them and the shape otherwise."""
+
+
+@dataclass(frozen=True)
+class InekfConfig:
+    """The contact-aided right-invariant EKF of papers/002 and its shape reconstruction."""
+
+    base_rod: int = 0
+    """The rod whose IMU defines the body frame (papers/002: the red rod)."""
+    noise: InekfNoise | None = None
+    """The IMU's noise densities and the contacts' slip; None: from the robot's
+    description (:func:`noise_from_description`)."""
+    shape: ShapeConfig = field(default_factory=ShapeConfig)
+    shape_rate: float = 10.0
+    """Hz: how often the shape is reconstructed from the encoders (at most one solve per
+    encoder reading); the corrections in between use the latest shape."""
+    contacts: str = "auto"
+    """See :data:`CONTACT_SOURCES`."""
+    contact_thresholds: ContactThresholds | None = None
+    """Heights for contacts from the shape; None: in proportion to the rods
+    (:meth:`ContactThresholds.for_rod_length`)."""
+    contact_std: float = 0.1
+    """m: standard deviation of an endcap's world position when it touches down, per
+    axis (eq. 9: the shape solver gives no Jacobian, so it is a parameter, as in the
+    paper)."""
+    kinematics_std: float = 0.08
+    """m: standard deviation of a contact endcap's body-frame position from the shape,
+    per axis (the forward-kinematics measurement noise of eq. 12): the shape's node
+    error on the 1.45 m robot rolling is about that (tests/test_shape.py); 2 cm made
+    the filter trust a wrong shape and drift 10 % instead of 4 % on the forward gait."""
+    gate_probability: float = 0.9999
+    """Chi-square gate on each contact correction: innovations less likely are refused."""
+    initial_rotation_std: float = 0.02
+    """rad: roll and pitch from the accelerometer at rest."""
+    initial_yaw_std: float = 0.2
+    """rad: heading from the magnetometer."""
+    initial_position_std: float = 0.01
+    """m: the estimator's frame is where the robot starts; it knows that well."""
+    initial_velocity_std: float = 0.01
+    """m/s: the robot rests at reset."""
+    initial_gyro_bias_std: float = 0.002
+    """rad/s, before the rest phase has measured it."""
+    initial_accel_bias_std: float = 0.01
+    """m/s^2."""
+    rest_gyro: float = 0.02
+    """rad/s: below this angular rate (and with the encoders still) the robot rests; the
+    gyro's mean over the first rest after reset is its bias."""
+    max_speed: float = 20.0
+    """m/s: an estimated speed beyond this is a divergence (the filter restarts)."""
+    health: HealthParams = field(default_factory=lambda: HealthParams(max_prediction_time=0.5))
+
+    def __post_init__(self) -> None:
+        if self.contacts not in CONTACT_SOURCES:
+            raise ValueError(
+                f"InekfConfig.contacts must be one of {list(CONTACT_SOURCES)}, "
+                f"got {self.contacts!r}"
+            )
+        if isinstance(self.base_rod, bool) or not isinstance(self.base_rod, int):
+            raise ValueError(f"InekfConfig.base_rod must be a rod index, got {self.base_rod!r}")
+        for name in (
+            "shape_rate", "contact_std", "kinematics_std", "initial_rotation_std",
+            "initial_yaw_std", "initial_position_std", "initial_velocity_std",
+            "initial_gyro_bias_std", "initial_accel_bias_std", "rest_gyro", "max_speed",
+        ):  # fmt: skip
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ValueError(f"InekfConfig.{name} must be a number > 0, got {value!r}")
+        p = self.gate_probability
+        if not (isinstance(p, float) and 0.0 < p < 1.0):
+            raise ValueError(f"InekfConfig.gate_probability must lie in (0, 1), got {p!r}")

@@ -1,0 +1,372 @@
+"""The proprioceptive estimator of papers/002 behind the :class:`Estimator` protocol
+(``estimator="inekf"``): one IMU, the motor encoders and endcap contacts, nothing
+outside the robot.
+
+Per period, in the samples' time order: each reading of the base rod's IMU propagates
+the right-invariant EKF over the time since the one before (the earlier reading held,
+as an IMU integrates); each encoder reading, at most ``shape_rate`` times a second,
+reconstructs the shape (papers/002 section V); at each encoder or contact reading the
+contacts are updated (from the contact sensors, or from the shape and gravity), endcaps
+touching down are added to the state (eq. 9), those lifting off are marginalised
+(eq. 10), and every endcap in contact corrects the state by forward kinematics
+(eq. 11-14). The estimate's nodes are the pose applied to the shape.
+
+It knows its position only relative to where it started (dead reckoning: the frame of
+:mod:`estimation.inekf.initialise`), and its heading only through the magnetometer at
+reset: both drift.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy.stats import chi2
+
+from estimation.health import EstimatorHealth
+from estimation.inekf.config import InekfConfig, noise_from_description
+from estimation.inekf.contacts import ContactThresholds, ShapeContactDetector
+from estimation.inekf.filter import RightInvariantEkf
+from estimation.inekf.initialise import base_imu_readings, initial_position, triad_orientation
+from estimation.inekf.shape import ShapeReconstructor
+from estimation.plausibility import PlausibilityBounds
+from estimation.screen import PlausibilityScreen
+from tensegrity_gym.model.estimate import Estimate
+from tensegrity_gym.model.kinematics import center_of_mass
+from tensegrity_gym.model.lie import quat_to_matrix
+from tensegrity_gym.model.samples import (
+    AhrsSample,
+    CableLengthSample,
+    ContactSample,
+    EncoderSample,
+    ImuSample,
+    ns_to_seconds,
+    seconds_to_ns,
+)
+
+if TYPE_CHECKING:
+    from collections.abc import Sequence
+
+    from numpy.typing import NDArray
+
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.protocols import SensorCalibration
+    from tensegrity_gym.model.samples import Sample
+
+__all__ = ["InekfEstimator"]
+
+_UP = np.array([0.0, 0.0, 1.0])
+ROD_TILT_GAIN = 0.2
+"""Gain of each rod's accelerometer low-pass per reading (about 25 ms at 200 Hz): its
+tilt for the shape without the jolts of a roll."""
+
+
+class InekfEstimator:
+    """Pose by IMU propagation and contact kinematics, shape from the cable lengths.
+
+    :attr:`health` counts divergences by reason (``"not finite"``, ``"too fast"``); a
+    shape that does not solve is counted in ``rejected`` as ``"shape_not_solved"`` and
+    not used. Attributes after each update: :attr:`shape` (n_nodes, 3) body frame,
+    :attr:`in_contact` (n_nodes,) bool.
+    """
+
+    needs_camera = False
+
+    def __init__(self, config: InekfConfig | None = None) -> None:
+        self.config = config or InekfConfig()
+        self.filter: RightInvariantEkf | None = None
+        self.health = EstimatorHealth(self.config.health)
+        self._rejected: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ protocol
+
+    def initialisation_missing(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+    ) -> str | None:
+        """What ``reset`` lacks: a reading of the base rod's IMU (tilt, heading) and of
+        the encoders (the shape)."""
+        rod = self.config.base_rod
+        if not any(isinstance(s, ImuSample) and s.rod == rod for s in samples):
+            name = description.rods[rod].name if rod < description.n_rods else rod
+            return f"no reading of the IMU on rod {name!r} (the invariant EKF's body frame)"
+        if not any(isinstance(s, EncoderSample) for s in samples):
+            return "no encoder reading (the invariant EKF reconstructs the shape from it)"
+        return None
+
+    def reset(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        samples: Sequence[Sample],
+        command: NDArray[np.float64],
+        rng: np.random.Generator,
+    ) -> Estimate:
+        c, d = self.config, description
+        if not 0 <= c.base_rod < d.n_rods:
+            raise ValueError(f"InekfConfig.base_rod {c.base_rod} is not a rod of {d.name!r}")
+        self.description = d
+        self._rejected = {}
+        bounds = PlausibilityBounds.from_robot(d, calibration)
+        self.screen = PlausibilityScreen(d, bounds, 1.0, self._rejected)
+        self.health = EstimatorHealth(c.health, self.screen)
+        self.reconstructor = ShapeReconstructor(d, c.shape, base_rod=c.base_rod)
+        thresholds = c.contact_thresholds or ContactThresholds.for_rod_length(
+            float(d.rods[c.base_rod].length)
+        )
+        self.detector = ShapeContactDetector(d.n_nodes, thresholds)
+        self._gate = float(chi2.ppf(c.gate_probability, 3))
+        self._rest = np.asarray(command, dtype=np.float64).copy()
+        self._cables: NDArray[np.float64] | None = None
+        self._sensed: NDArray[np.bool_] | None = None
+        self.shape = self.reconstructor.rest_shape()
+        self.in_contact = np.zeros(d.n_nodes, dtype=bool)
+        self._rod_accel = np.full((d.n_rods, 3), np.nan)
+        self._gyro = np.zeros(3)
+        self._accel = np.zeros(3)
+        self._imu_ns: int | None = None
+        self._shape_ns: int | None = None
+        self._rest_sum, self._rest_n, self._resting = np.zeros(3), 0, True
+        self._start(self.screen.screen(self.screen.timely(samples)))
+        return self._estimate(0, corrected=True)
+
+    def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
+        if self.filter is None:
+            raise RuntimeError("call reset() before update()")
+        before = self._t_ns
+        corrected = self._consume(self.screen.screen(self.screen.timely(samples)))
+        self._check_divergence()
+        return self._estimate(self._t_ns - before, corrected=corrected)
+
+    # ------------------------------------------------------------------ start
+
+    def _start(self, samples: Sequence[Sample]) -> None:
+        """The filter from the reset's samples: tilt and heading from the IMU at rest,
+        the gyro bias from its mean, the shape from the encoders."""
+        c, d = self.config, self.description
+        gyro, accel, mag = base_imu_readings(samples, c.base_rod)
+        field = np.asarray(d.sensors.imu.magnetic_field, dtype=np.float64)
+        ahrs = [s for s in samples if isinstance(s, AhrsSample) and s.rod == c.base_rod]
+        if ahrs:  # the IMU's own fusion has averaged its magnetometer while it rested
+            R = quat_to_matrix(ahrs[-1].quaternion)
+        elif len(accel):
+            R = triad_orientation(accel.mean(axis=0), mag.mean(axis=0), field)
+        else:
+            R = np.eye(3)
+        bias_g = gyro.mean(axis=0) if len(gyro) else np.zeros(3)
+        self._t_ns = seconds_to_ns(max((s.t for s in samples), default=0.0))
+        for s in samples:
+            if isinstance(s, ImuSample):
+                self._low_pass(s)
+            self._absorb(s)
+        up = R.T @ _UP
+        self._solve_shape(up)
+        p = initial_position(d, R, self.shape)
+        noise = c.noise if c.noise is not None else noise_from_description(d)
+        self.filter = RightInvariantEkf(noise, gravity=np.array([0.0, 0.0, -d.gravity]))
+        self.filter.reset(R, np.zeros(3), p, bias_g, np.zeros(3), self._initial_covariance(R))
+        if len(gyro):
+            self._gyro, self._accel = gyro[-1].copy(), accel[-1].copy()
+            self._imu_ns = self._t_ns
+        self._kinematics()
+
+    def _initial_covariance(self, R: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(15, 15): right-invariant error of rotation, velocity, position, then gyro and
+        accelerometer bias. Yaw is uncertain about the world z axis; in the right-invariant
+        error the rotation part is in the world frame, so yaw is its z entry."""
+        c = self.config
+        tilt, yaw = c.initial_rotation_std**2, c.initial_yaw_std**2
+        diag = np.concatenate([
+            [tilt, tilt, yaw],
+            np.full(3, c.initial_velocity_std**2),
+            np.full(3, c.initial_position_std**2),
+            np.full(3, c.initial_gyro_bias_std**2),
+            np.full(3, c.initial_accel_bias_std**2),
+        ])  # fmt: skip
+        return np.diag(diag)
+
+    # ------------------------------------------------------------------ samples
+
+    def _absorb(self, s: Sample) -> bool:
+        """Keep what ``s`` says of the shape and the contacts; True if it may change the
+        contacts (an encoder or contact reading)."""
+        if isinstance(s, EncoderSample):
+            self._rest = np.asarray(s.rest_lengths, dtype=np.float64)
+            return True
+        if isinstance(s, CableLengthSample):
+            self._cables = np.asarray(s.lengths, dtype=np.float64)
+        elif isinstance(s, ContactSample) and self.config.contacts != "shape":
+            self._sensed = np.asarray(s.in_contact, dtype=bool)
+            return True
+        return False
+
+    def _consume(self, samples: Sequence[Sample]) -> bool:
+        """Propagate and correct through ``samples``; True if a contact corrected.
+
+        Encoder and contact readings of one stamp come together (both at 100 Hz on the
+        presets): the contacts are updated and corrected once, after the last of them."""
+        corrected = False
+        pending: int | None = None
+        for s in samples:
+            t_ns = seconds_to_ns(s.t)
+            if pending is not None and t_ns != pending:
+                corrected = self._kinematics() or corrected
+                pending = None
+            if isinstance(s, ImuSample):
+                self._low_pass(s)
+                if s.rod == self.config.base_rod:
+                    self._imu(s, t_ns)
+                continue
+            if self._absorb(s):
+                self._t_ns = max(self._t_ns, t_ns)
+                if isinstance(s, EncoderSample) and self._shape_due(t_ns):
+                    self._solve_shape(self._up())
+                    self._shape_ns = t_ns
+                pending = t_ns
+        if pending is not None:
+            corrected = self._kinematics() or corrected
+        return corrected
+
+    def _imu(self, s: ImuSample, t_ns: int) -> None:
+        """Propagate over the time since the last reading with that reading held."""
+        assert self.filter is not None
+        if self._imu_ns is not None and t_ns > self._imu_ns:
+            self.filter.propagate(self._gyro, self._accel, ns_to_seconds(t_ns - self._imu_ns))
+        if self._imu_ns is None or t_ns >= self._imu_ns:
+            self._imu_ns = t_ns
+            self._gyro = np.asarray(s.gyro, dtype=np.float64)
+            self._accel = np.asarray(s.accel, dtype=np.float64)
+            self._t_ns = max(self._t_ns, t_ns)
+            self._rest_phase(self._gyro)
+
+    def _rest_phase(self, gyro: NDArray[np.float64]) -> None:
+        """While the robot rests after reset, the gyro's mean is its bias."""
+        if not self._resting:
+            return
+        mean = self._rest_sum / max(self._rest_n, 1)
+        if float(np.linalg.norm(gyro - mean)) > self.config.rest_gyro:
+            self._resting = False
+            return
+        self._rest_sum += gyro
+        self._rest_n += 1
+        assert self.filter is not None
+        self.filter.set_gyro_bias(self._rest_sum / self._rest_n)
+
+    def _low_pass(self, s: ImuSample) -> None:
+        """Each rod's accelerometer low-passed: its tilt for the shape (``rod_up``)."""
+        if 0 <= s.rod < len(self._rod_accel):
+            a = np.asarray(s.accel, dtype=np.float64)
+            last = self._rod_accel[s.rod]
+            self._rod_accel[s.rod] = a if np.isnan(last[0]) else last + ROD_TILT_GAIN * (a - last)
+
+    def _rod_up(self) -> NDArray[np.float64]:
+        """(n_rods, 3): each rod's up in its own frame, NaN rows where it has no IMU."""
+        norm = np.linalg.norm(self._rod_accel, axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.asarray(self._rod_accel / norm)
+
+    def _shape_due(self, t_ns: int) -> bool:
+        if self._shape_ns is None:
+            return True
+        return t_ns - self._shape_ns >= seconds_to_ns(1.0 / self.config.shape_rate) - 1000
+
+    def _up(self) -> NDArray[np.float64]:
+        """The up direction in the body frame, by the filter's orientation."""
+        assert self.filter is not None
+        return np.asarray(self.filter.rotation.T @ _UP)
+
+    def _solve_shape(self, up: NDArray[np.float64]) -> None:
+        """Reconstruct the shape; a solve that fails keeps the last shape."""
+        distances, weights = self.reconstructor.cable_distances(self._rest, self._cables)
+        contacts = self._sensed if self._sensed is not None else None
+        solution = self.reconstructor.solve(
+            distances, weights, up_body=up, contacts=contacts, warm=self.shape,
+            rod_up=self._rod_up(),
+        )  # fmt: skip
+        if solution.converged:
+            self.shape = solution.positions
+        else:
+            self._rejected["shape_not_solved"] = self._rejected.get("shape_not_solved", 0) + 1
+
+    # ------------------------------------------------------------------ contacts
+
+    def _contacts(self) -> NDArray[np.bool_]:
+        if self._sensed is not None and self.config.contacts != "shape":
+            return self._sensed.copy()
+        return self.detector.update(self.shape, self._up())
+
+    def _kinematics(self) -> bool:
+        """Contacts updated, then every endcap in contact corrects; True if one did."""
+        f, c = self.filter, self.config
+        assert f is not None
+        now = self._contacts()
+        for node in [n for n in f.contact_nodes if not now[n]]:
+            f.marginalise(node)
+        cov_touch = np.eye(3) * c.contact_std**2
+        for touched in np.flatnonzero(now & ~self.in_contact).tolist():
+            if touched not in f.contact_nodes:
+                f.augment(touched, self.shape[touched], cov_touch)
+        self.in_contact = now
+        nodes = list(f.contact_nodes)
+        if not nodes:
+            return False
+        cov = np.broadcast_to(np.eye(3) * c.kinematics_std**2, (len(nodes), 3, 3))
+        result = f.correct(nodes, self.shape[nodes], np.ascontiguousarray(cov), gate=self._gate)
+        rejected = int(np.count_nonzero(~np.asarray(result.accepted)))
+        if rejected:
+            self._rejected["contact_gated"] = self._rejected.get("contact_gated", 0) + rejected
+        return bool(np.any(result.accepted))
+
+    # ------------------------------------------------------------------ health
+
+    def _check_divergence(self) -> None:
+        f = self.filter
+        assert f is not None
+        if not f.is_finite():
+            reason = "not finite"
+        elif float(np.linalg.norm(f.velocity)) > self.config.max_speed:
+            reason = "too fast"
+        else:
+            return
+        self.health.diverged(reason)
+        self._restart()
+
+    def _restart(self) -> None:
+        """Start again from the IMU's current reading, where the estimate last was (the
+        best guess a dead-reckoning estimator has), at rest, uncertain."""
+        f = self.filter
+        assert f is not None
+        last = self._last_position if np.all(np.isfinite(self._last_position)) else np.zeros(3)
+        d = self.description
+        field = np.asarray(d.sensors.imu.magnetic_field, dtype=np.float64)
+        R = triad_orientation(self._accel, np.zeros(3), field)
+        P = self._initial_covariance(R) * 100.0
+        bias = f.gyro_bias if np.all(np.isfinite(f.gyro_bias)) else np.zeros(3)
+        f.reset(R, np.zeros(3), last, bias, np.zeros(3), P)
+        self.detector.reset()
+        self.in_contact[:] = False
+        self._kinematics()
+        self.health.reinitialised(placed=False)
+
+    # ------------------------------------------------------------------ output
+
+    def _estimate(self, duration_ns: int, *, corrected: bool) -> Estimate:
+        f, d = self.filter, self.description
+        assert f is not None
+        R, p = f.rotation, f.position
+        nodes = self.shape @ R.T + p
+        omega = self._gyro - f.gyro_bias
+        velocities = f.velocity + np.cross(omega, self.shape) @ R.T
+        self._last_position = p.copy()
+        self.health.predicted(duration_ns, corrected=corrected)
+        estimate = Estimate(
+            t=ns_to_seconds(self._t_ns),
+            node_positions=nodes,
+            node_velocities=velocities,
+            com=center_of_mass(nodes, d.node_masses),
+            rest_lengths=self._rest.copy(),
+            pose_covariance=f.pose_covariance,
+        )
+        return self.health.fill(estimate)
