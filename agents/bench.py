@@ -15,6 +15,34 @@ from agents.bench_env import bench_env_speed, bench_memory
 __all__ = ["run_benchmarks"]
 
 
+def _bench_proprioceptive(speed_steps: int) -> dict[str, Any]:
+    """papers/002 on the 1.45 m robot: table II (:mod:`agents.bench_proprio`), the
+    filter's and the shape solver's speed, and the env with it against the oracle."""
+    from agents.bench_inekf import bench_inekf
+    from agents.bench_proprio import bench_proprioceptive
+    from agents.bench_shape import bench_shape
+
+    large = "tensegrity_gym/ThreeBarLargeRoll-v0"
+    steps = max(speed_steps // 4, 100)
+    oracle = bench_env_speed(large, steps)
+    inekf = bench_env_speed(large, steps, estimator="inekf")
+    return {
+        "table": bench_proprioceptive(),
+        "filter_us": bench_inekf(),
+        "shape_us": bench_shape(),
+        "speed": [oracle, inekf],
+        "inekf_over_oracle_env_speed": round(
+            inekf["env_steps_per_s"] / oracle["env_steps_per_s"], 3
+        ),
+        "targets": {
+            "propagate_us": 20,
+            "correct_us (3 contacts)": 40,
+            "shape solve_us": 2000,
+            "inekf_over_oracle_env_speed": 0.8,
+        },
+    }
+
+
 def run_benchmarks(
     speed_steps: int = 2000,
     memory_steps: int = 100_000,
@@ -66,6 +94,7 @@ def run_benchmarks(
         from agents.bench_icp import bench_icp
 
         results["icp"] = bench_icp()
+        results["proprioceptive"] = _bench_proprioceptive(speed_steps)
     if bag_minutes > 0:
         from agents.bench_bags import bench_bags
 

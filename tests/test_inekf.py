@@ -179,3 +179,35 @@ def test_bad_parameters_are_one_line_errors() -> None:
         InekfConfig(kinematics_std=0.0)
     with pytest.raises(ValueError, match=r"InekfConfig\.gate_probability must lie in"):
         InekfConfig(gate_probability=1.0)
+
+
+def test_the_drift_table_scores_a_known_offset_and_a_perfect_estimate() -> None:
+    from dataclasses import replace
+
+    from agents.bench_proprio import drift_metrics
+    from tensegrity_gym.model.estimate import Estimate
+
+    d = load_robot("three_bar_large")
+    backend = SimBackend(d)
+    backend.reset(np.random.default_rng(0))
+    truth = backend.ground_truth()
+    assert truth is not None
+    # The robot slides 5 m along x; an estimate that lags by 10 % drifts 0.5 m.
+    truths, perfect, lagging = [], [], []
+    for k in range(51):
+        shift = np.array([0.1 * k, 0.0, 0.0])
+        t = replace(truth, node_positions=truth.node_positions + shift, com=truth.com + shift)
+        truths.append(t)
+        zero = np.zeros_like(t.node_positions)
+        perfect.append(Estimate(0.0, t.node_positions, zero, t.com, d.rest_lengths))
+        lag = 0.9 * shift
+        lagging.append(Estimate(0.0, truth.node_positions + lag, zero, truth.com + lag,
+                                d.rest_lengths))  # fmt: skip
+    exact = drift_metrics(truths, perfect, d.cable_nodes)
+    assert exact["trajectory_length_m"] == pytest.approx(5.0)
+    assert exact["final_drift_m"] == 0 and exact["rpe_translation_m_per_m"] == 0
+    assert exact["shape_rmse_m"] == 0
+    off = drift_metrics(truths, lagging, d.cable_nodes)
+    assert off["final_drift_m"] == pytest.approx(0.5) and off["drift_percent"] == pytest.approx(10)
+    assert off["rpe_translation_m_per_m"] == pytest.approx(0.1, abs=0.01)
+    assert off["rpe_rotation_deg_per_m"] == pytest.approx(0.0, abs=1e-6)
