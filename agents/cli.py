@@ -120,14 +120,21 @@ def _gait(args: argparse.Namespace) -> int:
     from agents.demo import run_gait
 
     summary = run_gait(
-        args.env, steps=args.steps, seed=args.seed, estimator=args.estimator, out=Path(args.out)
+        args.env,
+        steps=args.steps,
+        seed=args.seed,
+        estimator=args.estimator,
+        gait=args.gait,
+        out=Path(args.out),
     )
     s, e = summary["com_start"], summary["com_end"]
     sys.stdout.write(
-        f"{summary['env']}: scripted gait, {summary['seconds']:.1f} s simulated, "
-        f"{summary['face_changes']} support-face changes\n"
+        f"{summary['env']}: scripted gait {summary['gait']!r}, {summary['seconds']:.1f} s "
+        f"simulated, {summary['face_changes']} support-face changes\n"
         f"  true CoM went from ({s[0]:+.3f}, {s[1]:+.3f}) to ({e[0]:+.3f}, {e[1]:+.3f}) m: "
-        f"{summary['distance']:.3f} m in a straight line, {summary['path_length']:.3f} m of path\n"
+        f"{summary['distance']:.3f} m in a straight line, {summary['path_length']:.3f} m of path "
+        f"({summary['rest_path_length']:.3f} m from rest to rest), turning "
+        f"{summary['heading_change_deg']:+.0f} deg (left > 0)\n"
         f"  {summary['estimator']} estimate of the CoM: "
         f"{100 * summary['estimation_error_rms']:.1f} cm RMS error, "
         f"{100 * summary['estimation_error_max']:.1f} cm at worst\n"
@@ -286,6 +293,13 @@ def build_parser() -> argparse.ArgumentParser:
     gait.add_argument("--steps", type=_positive_int, default=300, help="control steps (10 Hz)")
     gait.add_argument("--seed", type=int, default=0)
     gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
+    gait.add_argument(
+        "--gait",
+        default="forward",
+        help="which of the robot's gaits, by name: forward (its YAML's gait) or one of its "
+        "YAML's gaits (three_bar_large: backward, left, right); another is refused with "
+        "the list",
+    )
     gait.add_argument("--out", default="gait_out", help="folder for the plot and summary")
     gait.set_defaults(func=_gait)
 
@@ -300,8 +314,9 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "--estimation",
         action="store_true",
-        help="also run the estimation study (papers/000 on SUPERball) and the UKF's "
-        "speed against filterpy's",
+        help="also run the estimation study (papers/000 on SUPERball), the UKF's "
+        "speed against filterpy's, the ICP tracker's figures and papers/002's table "
+        "(the invariant EKF on the 1.45 m robot, beside the UKF)",
     )
     bench.add_argument(
         "--bag-minutes",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
 from typing import TYPE_CHECKING, Any, cast
@@ -11,16 +12,36 @@ import numpy as np
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
 from agents.plots import plot_com_paths
+from tensegrity_gym.model.description import DEFAULT_GAIT
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from numpy.typing import NDArray
+
     from tensegrity_gym.envs.roll_env import TensegrityEnv
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_gait"]
+__all__ = ["heading_change", "run_gait"]
+
+
+def heading_change(points: NDArray[np.float64], span: int = 1) -> float:
+    """How far a path turns (degrees, counter-clockwise seen from above: left > 0): the
+    change of direction, unwrapped (twice round is 720), from its first chord to its
+    last, each chord from a point to the one ``span`` later. ``points``: positions (m),
+    (n, 3) or (n, 2). 0 where fewer than two chords move."""
+    p = np.asarray(points, dtype=np.float64)[:, :2]
+    if span < 1 or len(p) < span + 2:
+        return 0.0
+    chords = p[span:] - p[:-span]
+    chords = chords[np.linalg.norm(chords, axis=1) > 1e-3]
+    if len(chords) < 2:
+        return 0.0
+    angles = np.arctan2(chords[:, 1], chords[:, 0])
+    turns = (np.diff(angles) + np.pi) % (2.0 * np.pi) - np.pi
+    return float(np.degrees(turns.sum()))
 
 
 def run_gait(
@@ -29,31 +50,38 @@ def run_gait(
     steps: int = 300,
     seed: int = 0,
     estimator: str = "ukf",
+    gait: str = DEFAULT_GAIT,
     out: Path | None = None,
 ) -> dict[str, Any]:
-    """Roll the robot with its scripted gait for ``steps`` control steps.
+    """Roll the robot with its scripted gait ``gait`` (a name of the robot's
+    ``gaits``: ``"forward"``, and for three_bar_large ``"backward"``, ``"left"``,
+    ``"right"``) for ``steps`` control steps.
 
-    Returns a summary (start and end of the true CoM, distance, support-face changes)
-    and, if ``out`` is given, writes ``com_path.png`` and ``summary.json`` there.
+    Returns a summary (start and end of the true CoM, m; its distance and path length,
+    m; its heading change, degrees; support-face changes) and, if ``out`` is given,
+    writes ``com_path.png`` and ``summary.json`` there. ValueError, before any step, for
+    a gait the robot lacks.
     """
     env = gym.make(env_id, estimator=estimator, max_episode_steps=steps)
     inner = cast("TensegrityEnv", env.unwrapped)
-    gait = FaceGait(inner.backend.description, inner.task)
+    try:
+        policy = FaceGait(inner.backend.description, inner.task, gait=gait)
+    except ValueError:
+        env.close()
+        raise
     obs, info = env.reset(seed=seed)
     true_path = [info["com_true"]]
     errors = [info["estimation_error"]]
     est_path = [info["com_estimate"]]
-    faces = [gait.support_face(obs)]
+    faces = [policy.support_face(obs)]  # the support face after each step
     diverged = False
     for _ in range(steps):
-        obs, _, terminated, truncated, info = env.step(gait(obs))
+        obs, _, terminated, truncated, info = env.step(policy(obs))
         est_path.append(info["com_estimate"])
         if "com_true" in info:
             true_path.append(info["com_true"])
             errors.append(info["estimation_error"])
-        face = gait.support_face(obs)
-        if face != faces[-1]:
-            faces.append(face)
+        faces.append(policy.support_face(obs))
         if terminated or truncated:
             diverged = bool(info.get("sim_diverged", False))
             break
@@ -62,6 +90,7 @@ def run_gait(
     start, end = path[0], path[-1]
     summary: dict[str, Any] = {
         "env": env_id,
+        "gait": gait,
         "seed": seed,
         "steps": len(est_path) - 1,
         "seconds": (len(est_path) - 1) * inner.backend.control_period,
@@ -69,7 +98,8 @@ def run_gait(
         "com_end": end.round(4).tolist(),
         "distance": float(np.linalg.norm(end[:2] - start[:2])),
         "path_length": float(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1).sum()),
-        "face_changes": len(faces) - 1,
+        **_turn(path, policy),
+        "face_changes": sum(a != b for a, b in itertools.pairwise(faces)),
         "estimator": estimator,
         "estimation_error_rms": float(np.sqrt(np.mean(np.square(errors)))),
         "estimation_error_max": float(np.max(errors)),
@@ -81,3 +111,16 @@ def run_gait(
         (out / "summary.json").write_text(json.dumps(summary, indent=2))
         summary["plot"] = str(out / "com_path.png")
     return summary
+
+
+def _turn(path: NDArray[np.float64], gait: FaceGait) -> dict[str, Any]:
+    """The summary's rest path and turn. The true CoM ``path`` (one point per step) is
+    taken as each gait period starts, where the robot rests: the length (m) of that
+    path from rest to rest (the rolls without the sway of the contractions), and its
+    heading change (degrees, left > 0) over chords as many periods long as the gait's
+    table has faces (so that they span its cycle and its zig-zag is left out)."""
+    rests = path[:: gait.hold_steps + gait.settle_steps]
+    return {
+        "rest_path_length": float(np.linalg.norm(np.diff(rests[:, :2], axis=0), axis=1).sum()),
+        "heading_change_deg": heading_change(rests, len(gait.table)),
+    }

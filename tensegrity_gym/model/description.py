@@ -26,6 +26,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
 __all__ = [
+    "DEFAULT_GAIT",
     "PRESETS",
     "Cable",
     "CableLengthConfig",
@@ -55,6 +56,10 @@ A preset's file is the one place that says what the robot is and what comes with
 its env ids (``display_name``, ``hardware``) and its scripted gait (``gait``)."""
 
 _DISPLAY_NAME = re.compile(r"[A-Z][A-Za-z0-9]*\Z")
+_GAIT_NAME = re.compile(r"[a-z][a-z0-9_-]*\Z")
+
+DEFAULT_GAIT = "forward"
+"""The name of a robot's default gait: its YAML's ``gait`` (:attr:`RobotDescription.gait`)."""
 
 # A rod whose nodes are placed further from its length than this cannot be assembled.
 _ASSEMBLY_TOLERANCE = 0.01  # relative
@@ -259,12 +264,22 @@ class RobotDescription:
     hardware: bool = False
     """The robot exists on the robot link: ``...Hardware-v0`` ids are registered for it."""
     gait: Gait | None = None
-    """Its scripted rolling gait, if it has one (the YAML's ``gait``)."""
+    """Its default scripted rolling gait ("forward"), if it has one (the YAML's ``gait``)."""
+    named_gaits: tuple[tuple[str, Gait], ...] = ()
+    """Its further scripted gaits, (name, gait) in the YAML's order (its ``gaits``), e.g.
+    ``backward``, ``left``, ``right``. See :attr:`gaits`."""
     carries: tuple[str, ...] | None = None
     """The sample kinds (:data:`~tensegrity_gym.model.samples.SAMPLE_KINDS`) its sensors
     give, the YAML's ``carries``; None (absent): every kind. See :attr:`sample_kinds`."""
     source: str = field(default="", compare=False)
     """The file the description was read from."""
+
+    @property
+    def gaits(self) -> dict[str, Gait]:
+        """Every scripted gait by name: :attr:`gait` under ``"forward"`` (where there is
+        one), then :attr:`named_gaits`."""
+        default = {} if self.gait is None else {DEFAULT_GAIT: self.gait}
+        return default | dict(self.named_gaits)
 
     @property
     def sample_kinds(self) -> frozenset[str]:
@@ -556,31 +571,52 @@ def _names(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[in
     return tuple(out)
 
 
-def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable]) -> Gait:
-    """The ``gait`` section: faces by node names, cables by name (actuated only)."""
-    g = r.mapping(doc, "gait", {"faces"}, frozenset({"hold_steps", "settle_steps"}))
+def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str = "gait") -> Gait:
+    """A gait section at path ``p`` (``gait``, ``gaits.NAME``): faces by node names,
+    cables by name (actuated only)."""
+    g = r.mapping(doc, p, {"faces"}, frozenset({"hold_steps", "settle_steps"}))
     steps = {"hold_steps": 25, "settle_steps": 10}
     for key, low in (("hold_steps", 1), ("settle_steps", 0)):
         value = g.get(key, steps[key])
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
-            raise r.fail(f"gait.{key}", f"expected an integer >= {low}, got {value!r}")
+            raise r.fail(f"{p}.{key}", f"expected an integer >= {low}, got {value!r}")
         steps[key] = value
     node_index = {n.name: i for i, n in enumerate(nodes)}
     actuated = {c.name: k for k, c in enumerate(c for c in cables if c.actuated)}
     faces: list[GaitFace] = []
-    for i, item in enumerate(r.sequence(g["faces"], "gait.faces")):
-        p = f"gait.faces[{i}]"
-        f = r.mapping(item, p, {"face", "contract", "others"})
-        face = tuple(sorted(_names(r, f["face"], f"{p}.face", node_index)))
+    for i, item in enumerate(r.sequence(g["faces"], f"{p}.faces")):
+        q = f"{p}.faces[{i}]"
+        f = r.mapping(item, q, {"face", "contract", "others"})
+        face = tuple(sorted(_names(r, f["face"], f"{q}.face", node_index)))
         if len(face) != 3:
-            raise r.fail(f"{p}.face", f"a support face has 3 nodes, got {len(face)}")
+            raise r.fail(f"{q}.face", f"a support face has 3 nodes, got {len(face)}")
         if any(face == other.face for other in faces):
-            raise r.fail(f"{p}.face", "this face has an entry already")
-        contract = _names(r, f["contract"], f"{p}.contract", actuated)
+            raise r.fail(f"{q}.face", "this face has an entry already")
+        contract = _names(r, f["contract"], f"{q}.contract", actuated)
         if f["others"] not in ("hold", "out"):
-            raise r.fail(f"{p}.others", f"expected 'hold' or 'out', got {f['others']!r}")
+            raise r.fail(f"{q}.others", f"expected 'hold' or 'out', got {f['others']!r}")
         faces.append(GaitFace(face, contract, f["others"]))
     return Gait(tuple(faces), steps["hold_steps"], steps["settle_steps"])
+
+
+def _gaits(
+    r: _Reader, top: dict[str, Any], nodes: list[Node], cables: list[Cable]
+) -> tuple[tuple[str, Gait], ...]:
+    """The YAML's ``gaits``: further gaits by name (lower-case words), each a ``gait``
+    section; ``forward`` is the ``gait`` section's name and cannot be one of them."""
+    doc = top.get("gaits")
+    if doc is None:
+        return ()
+    if not isinstance(doc, dict) or not doc:
+        raise r.fail("gaits", f"expected a mapping of gaits by name, got {doc!r}")
+    out: list[tuple[str, Gait]] = []
+    for name, section in doc.items():
+        if not isinstance(name, str) or not _GAIT_NAME.match(name):
+            raise r.fail(f"gaits.{name}", "a gait's name is a lower-case word such as 'left'")
+        if name == DEFAULT_GAIT:
+            raise r.fail(f"gaits.{name}", f"the {DEFAULT_GAIT!r} gait is the 'gait' section")
+        out.append((name, _gait(r, section, nodes, cables, f"gaits.{name}")))
+    return tuple(out)
 
 
 def _display_name(r: _Reader, top: dict[str, Any]) -> str:
@@ -736,7 +772,7 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         doc,
         "",
         {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"},
-        frozenset({"display_name", "hardware", "gait", "carries"}),
+        frozenset({"display_name", "hardware", "gait", "gaits", "carries"}),
     )
     ground = _ground(r, top["ground"])
     nodes, index = _nodes(r, top["nodes"])
@@ -753,6 +789,7 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         display_name=_display_name(r, top),
         hardware=r.boolean(top.get("hardware", False), "hardware"),
         gait=None if top.get("gait") is None else _gait(r, top["gait"], nodes, cables),
+        named_gaits=_gaits(r, top, nodes, cables),
         carries=_carries(r, top),
         source=source,
     )
@@ -802,24 +839,34 @@ def robot_document(d: RobotDescription) -> dict[str, Any]:
         ],
         "sensors": plain(asdict(d.sensors)),
         **({} if d.carries is None else {"carries": list(d.carries)}),
-    } | ({} if d.gait is None else {"gait": gait_document(d)})
+    } | _gait_sections(d)
 
 
-def gait_document(d: RobotDescription) -> dict[str, Any]:
-    """The YAML ``gait`` section of a description that has a gait, by names."""
-    if d.gait is None:
-        raise ValueError(f"robot {d.name!r} has no gait")
+def _gait_sections(d: RobotDescription) -> dict[str, Any]:
+    """The YAML's ``gait`` and ``gaits`` sections, those the description has."""
+    out = {} if d.gait is None else {"gait": gait_document(d)}
+    if d.named_gaits:
+        out["gaits"] = {name: gait_document(d, name) for name, _ in d.named_gaits}
+    return out
+
+
+def gait_document(d: RobotDescription, name: str = DEFAULT_GAIT) -> dict[str, Any]:
+    """The YAML section of the description's gait ``name`` (see
+    :attr:`RobotDescription.gaits`), by names; ValueError if it has no such gait."""
+    gait = d.gaits.get(name)
+    if gait is None:
+        raise ValueError(f"robot {d.name!r} has no gait {name!r}; its gaits: {sorted(d.gaits)}")
     actuated = [d.cables[int(k)].name for k in d.actuated]
     return {
-        "hold_steps": d.gait.hold_steps,
-        "settle_steps": d.gait.settle_steps,
+        "hold_steps": gait.hold_steps,
+        "settle_steps": gait.settle_steps,
         "faces": [
             {
                 "face": [d.nodes[i].name for i in f.face],
                 "contract": [actuated[k] for k in f.contract],
                 "others": f.others,
             }
-            for f in d.gait.faces
+            for f in gait.faces
         ],
     }
 

@@ -6,12 +6,14 @@ others hold their initial rest length or are let out to their maximum. The gait 
 that command for ``hold_steps``, then returns to the initial lengths for
 ``settle_steps`` so the robot comes to rest on its next face, and repeats.
 
-Each preset's table lives with the robot, in the ``gait`` section of its YAML
-(:class:`tensegrity_gym.model.description.Gait`), found by ``scripts/find_gait.py``,
-which searches the transitions that carry the centre of mass furthest in one
-direction. Faces are sets of node indices, fixed to the robot's body, so a table works
-at any heading; the rolling direction follows the robot's orientation, not the task's
-goal.
+Each preset's tables live with the robot, in its YAML
+(:class:`tensegrity_gym.model.description.Gait`): the ``gait`` section is its default,
+``"forward"``, and a ``gaits`` section may add more by name (three_bar_large has
+``backward``, ``left`` and ``right``). ``scripts/find_gait.py`` finds them: the
+transitions that carry the centre of mass furthest in one direction, or a cycle of them
+whose path turns. Faces are sets of node indices, fixed to the robot's body, so a table
+works at any heading; the rolling direction follows the robot's orientation, not the
+task's goal.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tensegrity_gym.model.description import DescriptionError
+from tensegrity_gym.model.description import DEFAULT_GAIT, DescriptionError
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -37,15 +39,21 @@ GaitTable = dict[tuple[int, ...], tuple[tuple[int, ...], str]]
 """Face (sorted node indices) -> (actuated cable indices to contract, "hold" | "out")."""
 
 
-def gait_table(description: RobotDescription) -> GaitTable:
-    """The robot's own gait (its YAML's ``gait``) as a table; ValueError if it has none."""
-    if description.gait is None:
+def gait_table(description: RobotDescription, gait: str = DEFAULT_GAIT) -> GaitTable:
+    """The robot's gait ``gait`` (a name of its ``gaits``) as a table.
+
+    Raises:
+        ValueError: the robot has no gait by that name; the message lists those it has.
+    """
+    found = description.gaits.get(gait)
+    if found is None:
         raise DescriptionError(
-            f"no gait table for robot {description.name!r}: its description "
-            f"({description.source or 'not from a file'}) has no 'gait' section; "
-            "find one with scripts/find_gait.py"
+            f"no gait table for robot {description.name!r} named {gait!r}: its description "
+            f"({description.source or 'not from a file'}) has "
+            + (f"the gaits {sorted(description.gaits)}" if description.gaits else "none")
+            + "; find one with scripts/find_gait.py"
         )
-    return {f.face: (f.contract, f.others) for f in description.gait.faces}
+    return {f.face: (f.contract, f.others) for f in found.faces}
 
 
 class FaceGait:
@@ -56,10 +64,15 @@ class FaceGait:
     current face and phase); :meth:`reset` clears it.
 
     Args:
-        description: the robot; its ``gait`` gives the table unless ``table`` is given.
+        description: the robot; its gait named ``gait`` gives the table unless ``table``
+            is given.
         task: decodes observations into node positions (its ``decode``, as the
             tasks of :mod:`tensegrity_gym.tasks.common` have).
         table: a face-to-action table, overriding the robot's.
+        gait: the name of one of the robot's gaits (:attr:`RobotDescription.gaits`):
+            ``"forward"`` (its YAML's ``gait``), or one of its ``gaits`` such as
+            ``"backward"``, ``"left"``, ``"right"``; ValueError naming those it has for
+            another.
         hold_steps, settle_steps: control steps of the contraction and of the rest;
             ``None``: the robot's gait's (25 and 10 without one).
     """
@@ -69,14 +82,18 @@ class FaceGait:
         description: RobotDescription,
         task: Task,
         *,
+        gait: str = DEFAULT_GAIT,
         table: GaitTable | None = None,
         hold_steps: int | None = None,
         settle_steps: int | None = None,
     ) -> None:
-        gait = description.gait
-        table = gait_table(description) if table is None else table
-        hold_steps = (gait.hold_steps if gait else 25) if hold_steps is None else hold_steps
-        settle_steps = (gait.settle_steps if gait else 10) if settle_steps is None else settle_steps
+        table = gait_table(description, gait) if table is None else table
+        spec = description.gaits.get(gait)
+        if hold_steps is None:
+            hold_steps = spec.hold_steps if spec else 25
+        if settle_steps is None:
+            settle_steps = spec.settle_steps if spec else 10
+        self.gait = gait
         if hold_steps < 1 or settle_steps < 0:
             raise ValueError("hold_steps must be >= 1 and settle_steps >= 0")
         m = description.n_actuated
