@@ -38,9 +38,13 @@ __all__ = ["RUNS", "bench_proprioceptive", "drift_metrics"]
 ENV_ID = "tensegrity_gym/ThreeBarLargeRoll-v0"
 RUNS: dict[str, dict[str, Any]] = {
     "forward": {},
+    "backward": {"gait": "backward"},
+    "left turn": {"gait": "left"},
+    "right turn": {"gait": "right"},
     "valley": {"terrain": "valley"},
 }
-"""The runs by name: the arguments of ``gym.make`` each adds."""
+"""The runs by name: the robot's gait to run (``"gait"``, default forward) and the
+arguments of ``gym.make`` it adds (the rest)."""
 
 
 def _rpe(
@@ -117,10 +121,12 @@ def _node_pose(nodes: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray
 
 def _run(name: str, make_kwargs: dict[str, Any], steps: int, seed: int) -> dict[str, Any]:
     """One run: the oracle's gait, the InEKF and the UKF beside it on its samples."""
-    env = gym.make(ENV_ID, estimator="oracle", max_episode_steps=steps, **make_kwargs)
+    kwargs = dict(make_kwargs)
+    gait_name = kwargs.pop("gait", "forward")
+    env = gym.make(ENV_ID, estimator="oracle", max_episode_steps=steps, **kwargs)
     inner = cast("TensegrityEnv", env.unwrapped)
     backend, d = inner.backend, inner.backend.description
-    gait = FaceGait(d, inner.task)
+    gait = FaceGait(d, inner.task, gait=gait_name)
     estimators: dict[str, Estimator] = {"inekf": InekfEstimator(), "ukf": UkfEstimator()}
     wrapped = _Tap(backend)
     inner.backend = wrapped

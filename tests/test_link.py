@@ -588,7 +588,9 @@ def test_the_emulator_starts_in_seconds_and_stops_cleanly(signal_name: str) -> N
     try:
         process.start()
         started = time.monotonic() - t
-        assert started < 10.0  # about two seconds here (the bench times it), under load more
+        # 6 s on this 2-core machine idle, 11-13 s beside the suite's other worker (the
+        # bench times it): a hung start fails all the same.
+        assert started < 20.0
         assert process.process is not None
         process.process.send_signal(getattr(signal, signal_name))
         assert process.process.wait(timeout=5.0) == 0
