@@ -128,6 +128,8 @@ class InekfEstimator:
         self._accel = np.zeros(3)
         self._imu_ns: int | None = None
         self._shape_ns: int | None = None
+        # 1 us short of the period, so that readings at exactly the rate are all due
+        self._shape_period_ns = seconds_to_ns(1.0 / c.shape_rate) - 1000
         self._rest_sum, self._rest_n, self._resting = np.zeros(3), 0, True
         self._start(self.screen.screen(self.screen.timely(samples)))
         return self._estimate(0, corrected=True)
@@ -270,7 +272,7 @@ class InekfEstimator:
     def _shape_due(self, t_ns: int) -> bool:
         if self._shape_ns is None:
             return True
-        return t_ns - self._shape_ns >= seconds_to_ns(1.0 / self.config.shape_rate) - 1000
+        return t_ns - self._shape_ns >= self._shape_period_ns
 
     def _up(self) -> NDArray[np.float64]:
         """The up direction in the body frame, by the filter's orientation."""
@@ -280,9 +282,8 @@ class InekfEstimator:
     def _solve_shape(self, up: NDArray[np.float64]) -> None:
         """Reconstruct the shape; a solve that fails keeps the last shape."""
         distances, weights = self.reconstructor.cable_distances(self._rest, self._cables)
-        contacts = self._sensed if self._sensed is not None else None
         solution = self.reconstructor.solve(
-            distances, weights, up_body=up, contacts=contacts, warm=self.shape,
+            distances, weights, up_body=up, contacts=self._sensed, warm=self.shape,
             rod_up=self._rod_up(),
         )  # fmt: skip
         if solution.converged:
@@ -293,7 +294,7 @@ class InekfEstimator:
     # ------------------------------------------------------------------ contacts
 
     def _contacts(self) -> NDArray[np.bool_]:
-        if self._sensed is not None and self.config.contacts != "shape":
+        if self._sensed is not None:  # only kept where contacts are not "shape"
             return self._sensed.copy()
         return self.detector.update(self.shape, self._up())
 

@@ -89,8 +89,6 @@ def initial_position(
     centre one endcap radius above the ground (z = 0)."""
     world = shape @ rotation.T
     com = center_of_mass(world, description.node_masses)
-    radius = np.zeros(description.n_nodes)
-    for rod in description.rods:
-        radius[list(rod.nodes)] = rod.endcap_radius
     lowest = int(np.argmin(world[:, 2]))
-    return np.array([-com[0], -com[1], radius[lowest] - world[lowest, 2]])
+    radius = description.node_radii[lowest]
+    return np.array([-com[0], -com[1], radius - world[lowest, 2]])

@@ -328,6 +328,14 @@ class RobotDescription:
         return out
 
     @cached_property
+    def node_radii(self) -> NDArray[np.float64]:
+        """Endcap radius at each node (m), (n_nodes,): a node is its endcap's centre."""
+        out = np.zeros(self.n_nodes)
+        for rod in self.rods:
+            out[list(rod.nodes)] = rod.endcap_radius
+        return out
+
+    @cached_property
     def node_masses(self) -> NDArray[np.float64]:
         """Point masses at the nodes (kg), half a rod each, (n_nodes,)."""
         out = np.zeros(self.n_nodes)

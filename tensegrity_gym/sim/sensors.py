@@ -228,10 +228,7 @@ class ContactModel:
 
     def __init__(self, config: ContactConfig, description: RobotDescription) -> None:
         self.threshold = config.threshold
-        radius = np.zeros(description.n_nodes)
-        for rod in description.rods:
-            radius[list(rod.nodes)] = rod.endcap_radius
-        self.radius = radius
+        self.radius = description.node_radii
 
     def sample(self, snaps: Sequence[Snapshot]) -> list[ContactSample]:
         out = []
