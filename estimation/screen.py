@@ -106,9 +106,10 @@ def _stack(rows: Sequence[ArrayLike], width: int) -> NDArray[np.float64]:
 
 
 MAX_STAMP_LEAD = 1.0
-"""s: how far a sample's stamp may lie ahead of the other samples of its period. A
-period is 0.1 s; samples are handed over within their period, so a second ahead is a
-clock glitch, not a late period."""
+"""s: the gap in a batch's stamps beyond which later stamps are a clock glitch. A period
+is 0.1 s and its sensors sample many times in it, so a second without a sample before
+the last ones is a glitch, not a late period (a stalled link delivers seconds of samples
+at once, but with no such gap among them)."""
 
 
 class PlausibilityScreen:
@@ -154,9 +155,11 @@ class PlausibilityScreen:
 
     def timely(self, samples: Sequence[Sample]) -> list[Sample]:
         """The samples whose stamps can be believed, in their order: not NaN or inf, and
-        not more than :data:`MAX_STAMP_LEAD` s ahead of the batch's median stamp (a
-        clock glitch that would otherwise move the estimator's clock far ahead, after
-        which every real period would last nothing)."""
+        not beyond a gap of more than :data:`MAX_STAMP_LEAD` s among the batch's later
+        half of stamps (a clock glitch that would otherwise move the estimator's clock
+        far ahead, after which every real period would last nothing). A late batch that
+        spans seconds without such a gap (a congested link delivering a stall's samples
+        at once) is kept whole."""
         if not samples:
             return []
         t = np.array([s.t for s in samples], dtype=np.float64)
@@ -165,7 +168,12 @@ class PlausibilityScreen:
         if not finite.any():
             return []
         ahead = np.zeros_like(finite)
-        ahead[finite] = t[finite] > np.median(t[finite]) + MAX_STAMP_LEAD
+        ordered = np.sort(t[finite])
+        gaps = np.flatnonzero(
+            (np.diff(ordered) > MAX_STAMP_LEAD) & (ordered[:-1] >= np.median(ordered))
+        )
+        if len(gaps):
+            ahead[finite] = t[finite] > ordered[gaps[0]]
         self._count("stamp_in_future", int(np.count_nonzero(ahead)))
         keep = finite & ~ahead
         return [s for s, k in zip(samples, keep, strict=True) if k]

@@ -172,6 +172,28 @@ def test_a_divergence_restarts_the_filter_and_no_nan_comes_out() -> None:
     assert np.all(np.isfinite(est.filter.covariance))  # type: ignore[union-attr]
 
 
+def test_a_filter_whose_every_contact_is_refused_restarts() -> None:
+    # An accelerometer reading 2 m/s^2 too much along x: too little to be "too fast",
+    # enough that the endcaps at rest stop matching; the gate refuses them all, which
+    # must count as a divergence instead of coasting on the IMU from then on.
+    d = load_robot("three_bar_large")
+    backend = SimBackend(d)
+    rng = np.random.default_rng(2)
+    est = InekfEstimator()
+    start = backend.reset(rng)
+    hold = d.rest_lengths[d.actuated]
+    est.reset(d, backend.calibration, start.samples, hold, rng)
+    for _ in range(20):
+        samples = [
+            ImuSample(s.t, s.rod, s.accel + np.array([2.0, 0.0, 0.0]), s.gyro, s.mag)
+            if isinstance(s, ImuSample) else s
+            for s in backend.step(hold).samples
+        ]  # fmt: skip
+        assert est.update(samples, hold).is_finite()
+    assert est.health.divergences.get("contacts refused", 0) >= 1, est.health.divergences
+    assert "too fast" not in est.health.divergences
+
+
 def test_bad_parameters_are_one_line_errors() -> None:
     with pytest.raises(ValueError, match=r"InekfConfig.contacts must be one of \['auto'"):
         InekfConfig(contacts="mocap")
@@ -211,3 +233,27 @@ def test_the_drift_table_scores_a_known_offset_and_a_perfect_estimate() -> None:
     assert off["final_drift_m"] == pytest.approx(0.5) and off["drift_percent"] == pytest.approx(10)
     assert off["rpe_translation_m_per_m"] == pytest.approx(0.1, abs=0.01)
     assert off["rpe_rotation_deg_per_m"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_ukf_without_uwb_keeps_only_the_first_seconds_ranges() -> None:
+    from agents.bench_proprio import UWB_LOST_AFTER, _WithoutUwb
+    from tensegrity_gym.model.samples import UwbRangeSample
+
+    seen: list[list[Any]] = []
+
+    class Recorder:
+        name = "recorder"
+
+        def update(self, samples: Any, command: Any) -> Any:
+            seen.append(list(samples))
+            return len(samples)
+
+    def ranges(t: float) -> UwbRangeSample:
+        return UwbRangeSample(t, np.array([t]), np.array([[6, 0]]), np.array([1.0]))
+
+    imu = ImuSample(1.5, 0, np.zeros(3), np.zeros(3), np.zeros(3))
+    wrapped = _WithoutUwb(cast("Any", Recorder()), after=UWB_LOST_AFTER)
+    assert wrapped.update([ranges(0.5), ranges(1.0), ranges(1.5), imu], np.zeros(6)) == 3
+    assert [type(s).__name__ for s in seen[0]] == ["UwbRangeSample", "UwbRangeSample", "ImuSample"]
+    assert [s.t for s in seen[0]] == [0.5, 1.0, 1.5]
+    assert wrapped.name == "recorder"  # everything else is the inner estimator's

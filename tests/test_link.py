@@ -443,6 +443,23 @@ def test_ukf_rolls_the_emulated_robot_as_well_as_in_process(emulator: EmulatorPr
     assert np.mean(remote) < 2.0 * np.mean(local), (np.mean(remote), np.mean(local))
 
 
+def test_inekf_rolls_the_emulated_robot_as_well_as_in_process(emulator: EmulatorProcess) -> None:
+    # The proprioceptive estimator over the wire: IMU, encoders and contacts only.
+    steps = 60
+    env = gym.make(HW_ID, driver=emulator.address, estimator="inekf")
+    try:
+        remote, rolled = _gait_errors(env, steps, seed=0)
+        health = env.unwrapped.estimator.health  # type: ignore[attr-defined]
+    finally:
+        env.close()
+    local_env = gym.make("tensegrity_gym/ThreeBarRoll-v0", estimator="inekf")
+    local, _ = _gait_errors(local_env, steps, seed=0)
+    local_env.close()
+    assert len(remote) == steps and rolled > 0.1
+    assert health.divergences == {}, health.divergences
+    assert np.mean(remote) < 2.0 * np.mean(local) + 0.02, (np.mean(remote), np.mean(local))
+
+
 def test_a_killed_robot_flags_then_raises_and_a_restarted_one_reconnects(
     emulator: EmulatorProcess,
 ) -> None:

@@ -310,3 +310,22 @@ def test_a_sample_stamped_far_ahead_or_not_at_all_does_not_stop_the_clock() -> N
     assert estimate.rejected is not None
     assert estimate.rejected["stamp_in_future"] == 1 and estimate.rejected["stamp_not_finite"] == 1
     assert np.linalg.norm(estimate.com - truth.com) < 0.05
+
+
+def test_a_stalled_links_seconds_of_samples_are_kept_whole() -> None:
+    # A congested link hands over 3 s of samples at once: no gap in them, so none is
+    # "in the future"; a glitch stamp beyond them still is.
+    d = load_robot("three_bar")
+    backend = SimBackend(d)
+    rng = np.random.default_rng(0)
+    backend.reset(rng)
+    bounds = PlausibilityBounds.from_robot(d, backend.calibration)
+    counts: dict[str, int] = {}
+    screen = PlausibilityScreen(d, bounds, 1.0, counts)
+    command = d.rest_lengths[d.actuated]
+    samples = [s for _ in range(30) for s in backend.step(command).samples]
+    backend.close()
+    assert samples[-1].t - samples[0].t > 2.9
+    assert screen.timely(samples) == samples and "stamp_in_future" not in counts
+    glitch = EncoderSample(samples[-1].t + 5.0, command)
+    assert screen.timely([*samples, glitch]) == samples and counts["stamp_in_future"] == 1

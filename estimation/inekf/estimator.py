@@ -64,7 +64,8 @@ tilt for the shape without the jolts of a roll."""
 class InekfEstimator:
     """Pose by IMU propagation and contact kinematics, shape from the cable lengths.
 
-    :attr:`health` counts divergences by reason (``"not finite"``, ``"too fast"``); a
+    :attr:`health` counts divergences by reason (``"not finite"``, ``"too fast"``,
+    ``"contacts refused"``: every contact correction refused for ``max_refused_time``); a
     shape that does not solve is counted in ``rejected`` as ``"shape_not_solved"`` and
     not used. Attributes after each update: :attr:`shape` (n_nodes, 3) body frame,
     :attr:`in_contact` (n_nodes,) bool.
@@ -128,6 +129,7 @@ class InekfEstimator:
         self._accel = np.zeros(3)
         self._imu_ns: int | None = None
         self._shape_ns: int | None = None
+        self._refused_since_ns: int | None = None
         # 1 us short of the period, so that readings at exactly the rate are all due
         self._shape_period_ns = seconds_to_ns(1.0 / c.shape_rate) - 1000
         self._rest_sum, self._rest_n, self._resting = np.zeros(3), 0, True
@@ -318,7 +320,12 @@ class InekfEstimator:
         rejected = int(np.count_nonzero(~np.asarray(result.accepted)))
         if rejected:
             self._rejected["contact_gated"] = self._rejected.get("contact_gated", 0) + rejected
-        return bool(np.any(result.accepted))
+        accepted = bool(np.any(result.accepted))
+        if accepted:
+            self._refused_since_ns = None
+        elif self._refused_since_ns is None:
+            self._refused_since_ns = self._t_ns
+        return accepted
 
     # ------------------------------------------------------------------ health
 
@@ -329,6 +336,13 @@ class InekfEstimator:
             reason = "not finite"
         elif float(np.linalg.norm(f.velocity)) > self.config.max_speed:
             reason = "too fast"
+        elif (
+            self._refused_since_ns is not None
+            and self._t_ns - self._refused_since_ns > seconds_to_ns(self.config.max_refused_time)
+        ):
+            # A filter that has drifted off refuses every contact, so it would coast on
+            # the IMU alone from then on: it has diverged.
+            reason = "contacts refused"
         else:
             return
         self.health.diverged(reason)
@@ -348,6 +362,7 @@ class InekfEstimator:
         f.reset(R, np.zeros(3), last, bias, np.zeros(3), P)
         self.detector.reset()
         self.in_contact[:] = False
+        self._refused_since_ns = None
         self._kinematics()
         self.health.reinitialised(placed=False)
 
