@@ -1,0 +1,40 @@
+"""UWB self-calibration (papers/000 III-C): anchor positions and pair offsets from the
+uncorrected ranges of a robot moving about, without any anchor measured by hand.
+
+:func:`calibrate_ranges` takes ``(t, module_i, module_j, range)`` rows,
+:func:`calibrate_samples` ``UwbRangeSample`` rounds; both return a
+:class:`CalibrationResult` (anchors in the floor frame, offsets, residual statistics,
+a verdict) that :meth:`~CalibrationResult.to_calibration` turns into a
+``SensorCalibration``. :func:`check_calibration` tells, from later ranges, whether a
+calibration still fits (an anchor moved since). :func:`save_calibration` and
+:func:`load_calibration` keep one in YAML.
+"""
+
+from estimation.uwb_calibration.calibrate import calibrate_ranges, calibrate_samples
+from estimation.uwb_calibration.check import CalibrationCheck, check_calibration, check_samples
+from estimation.uwb_calibration.config import CalibrationConfig
+from estimation.uwb_calibration.files import (
+    CalibrationFile,
+    CalibrationFileError,
+    load_calibration,
+    save_calibration,
+)
+from estimation.uwb_calibration.geometry import rigid_alignment_rms
+from estimation.uwb_calibration.result import CalibrationError, CalibrationResult, ResidualStats
+
+__all__ = [
+    "CalibrationCheck",
+    "CalibrationConfig",
+    "CalibrationError",
+    "CalibrationFile",
+    "CalibrationFileError",
+    "CalibrationResult",
+    "ResidualStats",
+    "calibrate_ranges",
+    "calibrate_samples",
+    "check_calibration",
+    "check_samples",
+    "load_calibration",
+    "rigid_alignment_rms",
+    "save_calibration",
+]

@@ -1,0 +1,255 @@
+"""A calibration in YAML: :func:`save_calibration`, :func:`load_calibration`.
+
+The file (``version: 1``)::
+
+    version: 1
+    robot: superball            # the description's name; "" if unknown
+    frame: floor                # or "known" (the lab's frame of known anchors)
+    anchors: [[x, y, z], ...]   # m, (A, 3)
+    offsets: [[...], ...]       # m, (n + A, n + A), symmetric
+    camera:                     # optional: a SensorCalibration's camera
+      intrinsics: [[...], ...]  # (3, 3) pixels
+      pose: [[...], ...]        # (4, 4) camera to world
+    result:                     # optional: what the calibrator said
+      verdict: good
+      ...
+
+A bad file is one ``CalibrationFileError`` line naming the file and the field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+
+from estimation.uwb_calibration.result import CalibrationResult, ResidualStats
+from tensegrity_gym.model.protocols import SensorCalibration
+
+if TYPE_CHECKING:
+    import os
+
+    from numpy.typing import NDArray
+
+__all__ = [
+    "VERSION",
+    "CalibrationFile",
+    "CalibrationFileError",
+    "load_calibration",
+    "save_calibration",
+]
+
+VERSION = 1
+_STATS = ("count", "median", "spread", "rms", "outlier_fraction")
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file is missing, not YAML, or malformed; names the file and field."""
+
+
+@dataclass(frozen=True)
+class CalibrationFile:
+    """What :func:`load_calibration` read."""
+
+    robot: str
+    frame: str
+    anchors: NDArray[np.float64]
+    """(A, 3) m."""
+    offsets: NDArray[np.float64]
+    """(n + A, n + A) m."""
+    camera_intrinsics: NDArray[np.float64] | None = None
+    camera_pose: NDArray[np.float64] | None = None
+    result: CalibrationResult | None = None
+    """The calibrator's result where the file holds one."""
+
+    def to_calibration(self, base: SensorCalibration | None = None) -> SensorCalibration:
+        """A :class:`SensorCalibration`: these anchors and offsets; the camera from the
+        file, else from ``base``, else identity."""
+        intrinsics = self.camera_intrinsics if self.camera_intrinsics is not None else (
+            base.camera_intrinsics if base is not None else np.eye(3))  # fmt: skip
+        pose = self.camera_pose if self.camera_pose is not None else (
+            base.camera_pose if base is not None else np.eye(4))  # fmt: skip
+        return SensorCalibration(self.offsets.copy(), self.anchors.copy(), intrinsics, pose)
+
+
+def _matrix(x: NDArray[np.float64]) -> list[list[float]]:
+    return [[float(v) for v in row] for row in np.asarray(x, dtype=np.float64)]
+
+
+def _result_doc(r: CalibrationResult) -> dict[str, Any]:
+    pairs = {k: [[float(getattr(s, k)) for s in row] for row in r.pair_stats] for k in _STATS}
+    return {
+        "verdict": r.verdict,
+        "flagged_anchors": [int(a) for a in r.flagged_anchors],
+        "mirror": r.mirror,
+        "mean_offset": float(r.mean_offset),
+        "anchor_sigma": [float(v) for v in r.anchor_sigma],
+        "anchor_residuals": [{k: float(v) for k, v in asdict(s).items()} for s in r.anchor_stats],
+        "pair_residuals": pairs,
+        "robot_pair_count": r.robot_pair_count.tolist(),
+        "n_samples": r.n_samples, "n_usable": r.n_usable, "n_rounds": r.n_rounds,
+        "cost": float(r.cost), "wall_time": float(r.wall_time),
+        "extras": {k: float(v) for k, v in r.extras.items()},
+    }  # fmt: skip
+
+
+def save_calibration(
+    path: str | os.PathLike[str],
+    calibration: CalibrationResult | SensorCalibration,
+    *,
+    robot: str = "",
+) -> None:
+    """Write ``calibration`` to ``path`` (YAML): a calibrator's result with its verdict
+    and residuals, or a :class:`SensorCalibration` with its camera."""
+    doc: dict[str, Any] = {"version": VERSION, "robot": robot}
+    if isinstance(calibration, CalibrationResult):
+        doc["frame"] = calibration.frame
+        doc["anchors"] = _matrix(calibration.anchors)
+        doc["offsets"] = _matrix(calibration.offsets)
+        doc["result"] = _result_doc(calibration)
+    else:
+        doc["frame"] = "floor"
+        doc["anchors"] = _matrix(calibration.anchors)
+        doc["offsets"] = _matrix(calibration.uwb_offsets)
+        camera = (calibration.camera_intrinsics, calibration.camera_pose)
+        doc["camera"] = {"intrinsics": _matrix(camera[0]), "pose": _matrix(camera[1])}
+    Path(path).write_text(yaml.safe_dump(doc, sort_keys=False, width=120))
+
+
+class _Reader:
+    """Reads fields of the parsed document; errors name the file and the field."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, field: str, message: str) -> CalibrationFileError:
+        return CalibrationFileError(f"{self.source}: {field}: {message}")
+
+    def mapping(
+        self, value: Any, field: str, required: set[str], optional: set[str]
+    ) -> dict[str, Any]:
+        if not isinstance(value, dict):
+            raise self.fail(field, f"expected a mapping, got {type(value).__name__}")
+        prefix = f"{field}." if field else ""
+        for key in sorted(required - value.keys()):
+            raise self.fail(prefix + key, "missing field")
+        for key in sorted(set(value) - required - optional):
+            raise self.fail(prefix + str(key), "unknown field")
+        return value
+
+    def array(self, value: Any, field: str, shape: tuple[int | None, ...]) -> NDArray[np.float64]:
+        try:
+            out = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(field, f"expected numbers of shape {_shape(shape)}") from None
+        if out.ndim != len(shape) or any(
+            s is not None and s != d for s, d in zip(shape, out.shape, strict=True)
+        ):
+            raise self.fail(field, f"expected shape {_shape(shape)}, got {out.shape}")
+        if not np.all(np.isfinite(out)):
+            raise self.fail(field, "must be finite")
+        return out
+
+
+def _shape(shape: tuple[int | None, ...]) -> str:
+    return "(" + ", ".join("k" if s is None else str(s) for s in shape) + ")"
+
+
+def _stats(values: dict[str, Any]) -> ResidualStats:
+    return ResidualStats(int(values["count"]), *(float(values[k]) for k in _STATS[1:]))
+
+
+_RESULT_KEYS = {
+    "verdict", "flagged_anchors", "mirror", "mean_offset", "anchor_sigma", "anchor_residuals",
+    "pair_residuals", "robot_pair_count", "n_samples", "n_usable", "n_rounds", "cost",
+    "wall_time", "extras",
+}  # fmt: skip
+
+
+def _result(
+    r: _Reader, doc: Any, anchors: NDArray[np.float64], offsets: NDArray[np.float64], frame: str
+) -> CalibrationResult:
+    """The ``result`` section as a :class:`CalibrationResult`."""
+    d = r.mapping(doc, "result", _RESULT_KEYS, set())
+    A, n = len(anchors), len(offsets) - len(anchors)
+    listed = d["anchor_residuals"] if isinstance(d["anchor_residuals"], list) else []
+    if len(listed) != A:
+        raise r.fail("result.anchor_residuals", f"expected {A} entries, got {len(listed)}")
+    per_anchor = [
+        r.mapping(s, f"result.anchor_residuals[{k}]", set(_STATS), set())
+        for k, s in enumerate(listed)
+    ]
+    pr = r.mapping(d["pair_residuals"], "result.pair_residuals", set(_STATS), set())
+    pair = {k: r.array(pr[k], f"result.pair_residuals.{k}", (A, n)) for k in _STATS}
+    pair_stats = tuple(
+        tuple(_stats({k: pair[k][a, j] for k in _STATS}) for j in range(n)) for a in range(A)
+    )
+    count = r.array(d["robot_pair_count"], "result.robot_pair_count", (n, n))
+    return CalibrationResult(
+        anchors=anchors,
+        offsets=offsets,
+        mean_offset=float(d["mean_offset"]),
+        anchor_sigma=r.array(d["anchor_sigma"], "result.anchor_sigma", (A,)),
+        anchor_stats=tuple(_stats(s) for s in per_anchor),
+        pair_stats=pair_stats,
+        robot_pair_count=count.astype(np.intp),
+        n_samples=int(d["n_samples"]),
+        n_usable=int(d["n_usable"]),
+        n_rounds=int(d["n_rounds"]),
+        cost=float(d["cost"]),
+        verdict=str(d["verdict"]),
+        flagged_anchors=tuple(int(a) for a in d["flagged_anchors"]),
+        mirror=str(d["mirror"]),
+        frame=frame,
+        wall_time=float(d["wall_time"]),
+        extras={str(k): float(v) for k, v in dict(d["extras"]).items()},
+    )
+
+
+def load_calibration(path: str | os.PathLike[str]) -> CalibrationFile:
+    """Read a calibration written by :func:`save_calibration`.
+
+    Raises:
+        CalibrationFileError: the file is missing, not YAML, of another version, or a
+            field is missing, unknown or malformed; one line naming file and field.
+    """
+    source = str(path)
+    try:
+        doc = yaml.safe_load(Path(path).read_text())
+    except OSError as e:
+        raise CalibrationFileError(f"{source}: cannot read: {e.strerror or e}") from None
+    except yaml.YAMLError as e:
+        raise CalibrationFileError(f"{source}: not YAML: {str(e).splitlines()[0]}") from None
+    r = _Reader(source)
+    d = r.mapping(
+        doc, "", {"version", "robot", "frame", "anchors", "offsets"}, {"camera", "result"}
+    )
+    if d["version"] != VERSION:
+        raise r.fail("version", f"expected {VERSION}, got {d['version']!r}")
+    if d["frame"] not in ("floor", "known"):
+        raise r.fail("frame", f"expected 'floor' or 'known', got {d['frame']!r}")
+    anchors = r.array(d["anchors"], "anchors", (None, 3))
+    offsets = r.array(d["offsets"], "offsets", (None, None))
+    size = len(offsets)
+    if offsets.shape != (size, size) or size <= len(anchors):
+        raise r.fail(
+            "offsets",
+            f"expected a square matrix larger than the {len(anchors)} anchors, got {offsets.shape}",
+        )
+    if not np.allclose(offsets, offsets.T, atol=1e-9):
+        raise r.fail("offsets", "must be symmetric (o_ij = o_ji)")
+    intrinsics = pose = None
+    if "camera" in d:
+        cam = r.mapping(d["camera"], "camera", {"intrinsics", "pose"}, set())
+        intrinsics = r.array(cam["intrinsics"], "camera.intrinsics", (3, 3))
+        pose = r.array(cam["pose"], "camera.pose", (4, 4))
+    try:
+        result = _result(r, d["result"], anchors, offsets, d["frame"]) if "result" in d else None
+    except (TypeError, ValueError, AttributeError) as e:
+        if isinstance(e, CalibrationFileError):
+            raise
+        raise r.fail("result", f"malformed: {e}") from None
+    return CalibrationFile(str(d["robot"]), d["frame"], anchors, offsets, intrinsics, pose, result)
