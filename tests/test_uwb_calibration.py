@@ -8,7 +8,6 @@ simulated robot under its gait. No anchor position is handed to the calibrator.
 
 from __future__ import annotations
 
-import dataclasses
 from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
@@ -46,7 +45,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import RobotDescription
 
 RATE = 15.0  # UWB rounds per second
-FAST = CalibrationConfig(n_starts=1, max_samples=600)
+FAST = CalibrationConfig(n_starts=1, max_samples=800)
 
 
 def _rotation(axis: NDArray[np.float64], angle: float) -> NDArray[np.float64]:
@@ -120,16 +119,21 @@ def uwb_run(
     frames: list[NDArray[np.float64]],
     seed: int,
     *,
-    anchors: NDArray[np.float64] | None = None,
+    move: tuple[int, NDArray[np.float64]] | None = None,
 ) -> tuple[list[UwbRangeSample], UwbModel]:
-    """The rounds ``UwbModel`` gives for ``frames``; its world (offsets, loss) drawn
-    from ``seed``; ``anchors`` (A, 3) where they are not the description's."""
-    config = d.sensors.uwb
-    if anchors is not None:
-        moved = tuple((float(x), float(y), float(z)) for x, y, z in anchors)
-        config = dataclasses.replace(config, anchors=moved)
-    model = UwbModel(config, d)
-    model.reset(np.random.default_rng(seed))
+    """The rounds ``UwbModel`` gives for ``frames`` in the world drawn from ``seed``
+    (anchors, offsets, loss: the same seed, the same world); ``move``: (anchor,
+    displacement m (3,)) moves one anchor after the world is drawn. The truth is the
+    model's: ``model.anchors``, ``model.offsets``."""
+    model = UwbModel(d.sensors.uwb, d)
+    world = np.random.default_rng(seed)
+    draw_world = getattr(model, "draw_world", None)  # the world apart from the episode
+    if draw_world is not None:
+        draw_world(world)
+    model.reset(world)
+    if move is not None:
+        model.anchors = model.anchors.copy()
+        model.anchors[move[0]] += move[1]
     snaps = [
         SimpleNamespace(t=round((k + 1) / RATE, 3), node_positions=f) for k, f in enumerate(frames)
     ]
@@ -153,7 +157,7 @@ def three_bar() -> RobotDescription:
 
 @pytest.fixture(scope="module")
 def roll(three_bar: RobotDescription) -> list[NDArray[np.float64]]:
-    return roll_frames(three_bar, np.random.default_rng(1), 90.0, radius=1.2)
+    return roll_frames(three_bar, np.random.default_rng(1), 180.0, radius=1.2)
 
 
 @pytest.fixture(scope="module")
@@ -176,8 +180,7 @@ def test_anchors_and_offsets_without_known_anchors(
     calibrated: CalibrationResult,
 ) -> None:
     _, model = run
-    truth = three_bar.anchors
-    assert rigid_alignment_rms(calibrated.anchors, truth) <= 0.02
+    assert rigid_alignment_rms(calibrated.anchors, model.anchors) <= 0.02
     robot_anchor, robot_robot = offset_errors(calibrated, model.offsets, three_bar.n_nodes)
     assert robot_anchor <= 0.015
     assert robot_robot <= 0.015
@@ -187,11 +190,11 @@ def test_anchors_and_offsets_without_known_anchors(
 
 
 def test_floor_frame_gauge_and_mirror(
-    three_bar: RobotDescription, calibrated: CalibrationResult
+    run: tuple[list[UwbRangeSample], UwbModel], calibrated: CalibrationResult
 ) -> None:
     """Anchor 0 above the origin, anchor 1 above +x, z up from the floor the robot
     rests on (the truth's z = 0), and the robot's handedness, not its mirror image."""
-    a, truth = calibrated.anchors, three_bar.anchors
+    a, truth = calibrated.anchors, run[1].anchors
     assert a[0, 0] == 0.0 and a[0, 1] == 0.0 and a[1, 1] == 0.0 and a[1, 0] > 0.0
     dz = a[:, 2] - truth[:, 2]  # heights above the floor, not above anchor 0
     assert abs(np.mean(dz)) < 0.03 and np.max(np.abs(dz)) < 0.08, dz
@@ -215,7 +218,7 @@ def test_multipath_outliers_do_not_pull(
         ranges[hit] += rng.uniform(0.5, 3.0, int(hit.sum()))
         spoiled.append(UwbRangeSample(s.t, s.times, s.pairs, ranges))
     result = calibrate_samples(spoiled, three_bar, config=FAST, rng=np.random.default_rng(0))
-    assert rigid_alignment_rms(result.anchors, three_bar.anchors) <= 0.025
+    assert rigid_alignment_rms(result.anchors, model.anchors) <= 0.025
     assert offset_errors(result, model.offsets, three_bar.n_nodes)[0] <= 0.02
     assert not result.flagged_anchors, result.verdict
     assert 0.08 < result.extras["screened_share"] < 0.12  # the jumps found before the solve
@@ -229,11 +232,23 @@ def test_anchor_moved_after_calibration_is_flagged(
     frames = roll[: int(30 * RATE)]
     same, _ = uwb_run(three_bar, frames, seed=7)
     assert check_samples(calibrated, same, three_bar).verdict == "fits"
-    moved = three_bar.anchors.copy()
-    moved[3] += 0.3 * np.array([0.6, 0.8, 0.0])
-    later, _ = uwb_run(three_bar, frames, seed=7, anchors=moved)
+    later, _ = uwb_run(three_bar, frames, seed=7, move=(3, 0.3 * np.array([0.6, 0.8, 0.0])))
     check = check_samples(calibrated, later, three_bar)
     assert check.flagged_anchors == (3,), check.verdict
+
+
+def test_known_anchors_give_their_frame(
+    three_bar: RobotDescription, run: tuple[list[UwbRangeSample], UwbModel]
+) -> None:
+    """Three anchors measured by hand (the paper's way): the result is in their frame."""
+    samples, model = run
+    known = {a: model.anchors[a] for a in (0, 2, 4)}
+    result = calibrate_samples(samples, three_bar, known_anchors=known, config=FAST)
+    assert result.frame == "known"
+    np.testing.assert_allclose(result.anchors[[0, 2, 4]], model.anchors[[0, 2, 4]], atol=0.01)
+    assert np.sqrt(np.mean(np.sum((result.anchors - model.anchors) ** 2, axis=1))) <= 0.03
+    with pytest.raises(ValueError, match="2 anchors given, at least 3"):
+        calibrate_samples(samples, three_bar, known_anchors={0: (0.0, 0.0, 1.0), 1: (1.0, 0, 0)})
 
 
 def test_too_few_samples_is_one_line_with_counts(
@@ -373,9 +388,7 @@ def test_anchor_moved_during_calibration_is_flagged(
 ) -> None:
     half = len(roll) // 2
     first, _ = uwb_run(three_bar, roll[:half], seed=7)
-    moved = three_bar.anchors.copy()
-    moved[5] += np.array([0.0, 0.3, 0.0])
-    second, _ = uwb_run(three_bar, roll[half:], seed=7, anchors=moved)
+    second, _ = uwb_run(three_bar, roll[half:], seed=7, move=(5, np.array([0.0, 0.3, 0.0])))
     shifted = [
         UwbRangeSample(s.t + half / RATE, s.times + half / RATE, s.pairs, s.ranges) for s in second
     ]

@@ -21,7 +21,6 @@ from estimation.uwb_calibration.problem import JointState
 from estimation.uwb_calibration.result import CalibrationError, ResidualStats, residual_stats
 from estimation.uwb_calibration.rounds import sample_rows
 from estimation.uwb_calibration.solve import _spread
-from estimation.uwb_calibration.verdict import flag_anchors
 
 if TYPE_CHECKING:
     from collections.abc import Iterable
@@ -29,6 +28,7 @@ if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
 
     from estimation.uwb_calibration.result import CalibrationResult
+    from estimation.uwb_calibration.rounds import RangeTable
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import UwbRangeSample
@@ -56,6 +56,39 @@ def _pair_offsets(offsets: NDArray[np.float64], n: int, n_anchors: int) -> NDArr
     return np.concatenate([offsets[n:, :n].ravel(), offsets[:n, :n][iu]])
 
 
+def _left_out(
+    table: RangeTable,
+    rounds: NDArray[np.intp],
+    anchor: int,
+    description: RobotDescription,
+    calibration: tuple[NDArray[np.float64], NDArray[np.float64], tuple[int, ...]],
+    config: CalibrationConfig,
+) -> NDArray[np.float64]:
+    """Residuals (m) of ``anchor``'s ranges in ``rounds`` at module positions fitted to
+    the ranges of the other anchors but the flagged ones (and to the robot's shape and
+    the floor) alone; ``calibration``: anchors, pair offsets, flagged anchors."""
+    anchors, offsets, flagged = calibration
+    n, A = table.n_nodes, table.n_anchors
+    left = np.isin(table.a_anchor, (anchor, *flagged))
+    others = table.subset(~left, np.ones(len(table.r_range), dtype=bool))
+    valid = others.valid_modules(config.min_anchor_ranges)
+    asm = assemble(others, rounds, valid, description, np.zeros((A, 3), dtype=bool), config)
+    p = replace(asm.problem, hold_offsets=True)
+    state = JointState(anchors, offsets, float(np.mean(offsets)),
+                       start_positions(p, anchors, offsets[: A * n]))  # fmt: skip
+    for _ in range(config.floor_passes):
+        p = with_contacts(p, state, config.floor_slab)
+        state = solve_positions(p, state, "cauchy", config.loss_scale)
+    sample_of = np.full(table.n_rounds, -1, dtype=np.intp)
+    sample_of[rounds] = np.arange(len(rounds))
+    mine = (table.a_anchor == anchor) & (sample_of[table.a_round] >= 0)
+    slot = asm.slot[sample_of[table.a_round[mine]], table.a_module[mine]]
+    seen = slot >= 0
+    j, m = table.a_module[mine][seen], table.a_range[mine][seen]
+    model = np.linalg.norm(anchors[anchor] - state.positions[slot[seen]], axis=1)
+    return np.asarray(m - model - offsets[anchor * n + j])
+
+
 def check_calibration(
     calibration: SensorCalibration | CalibrationResult,
     t: ArrayLike,
@@ -67,10 +100,13 @@ def check_calibration(
     config: CalibrationConfig | None = None,
     rng: np.random.Generator | None = None,
     rounds: ArrayLike | None = None,
+    samples: int = 200,
 ) -> CalibrationCheck:
-    """Fit the module positions of rows ``(t, module_i, module_j, range)`` (as
-    :func:`calibrate_ranges` takes them) to ``calibration``'s anchors (floor frame) and
-    offsets, and flag the anchors whose residuals stand out.
+    """Check rows ``(t, module_i, module_j, range)`` (as :func:`calibrate_ranges` takes
+    them) against ``calibration``'s anchors (floor frame) and offsets: for each anchor,
+    the residuals of its ranges at module positions fitted to the other anchors alone
+    (on up to ``samples`` rounds), so that a moved anchor cannot hide in the fit; flag
+    the anchors whose residuals stand out.
 
     Raises:
         CalibrationError: no round in which a module ranged 4 anchors.
@@ -78,8 +114,7 @@ def check_calibration(
     config = config or CalibrationConfig()
     rng = rng if rng is not None else np.random.default_rng(0)
     table = _table(t, module_i, module_j, ranges, description, config, rounds)
-    valid = table.valid_modules(config.min_anchor_ranges)
-    usable = np.flatnonzero(valid.any(axis=1))
+    usable = np.flatnonzero(table.valid_modules(config.min_anchor_ranges).any(axis=1))
     if len(usable) == 0:
         raise CalibrationError(
             f"0 usable samples (rounds in which a module ranged {config.min_anchor_ranges} "
@@ -88,26 +123,40 @@ def check_calibration(
     n, A = table.n_nodes, table.n_anchors
     anchors = np.asarray(calibration.anchors, dtype=np.float64)
     offsets = _pair_offsets(np.asarray(_offsets_of(calibration)), n, A)
-    held = np.zeros((A, 3), dtype=bool)
+    chosen = _spread(usable, samples, rng)
+    flagged: tuple[int, ...] = ()
     with single_threaded_blas():
-        asm = assemble(
-            table, _spread(usable, config.max_samples, rng), valid, description, held, config
-        )
-        p = replace(asm.problem, hold_offsets=True)
-        state = JointState(anchors, offsets, float(np.mean(offsets)),
-                           start_positions(p, anchors, offsets[: A * n]))  # fmt: skip
-        for _ in range(config.floor_passes):
-            p = with_contacts(p, state, config.floor_slab)
-            state = solve_positions(p, state, config.final_loss, config.loss_scale)
-    a, j, v, m = p.anchor_rows
-    r = m - np.linalg.norm(anchors[a] - state.positions[v], axis=1) - offsets[a * n + j]
-    threshold = 2.0 * config.loss_scale * config.range_sigma
-    stats = tuple(residual_stats(r[a == k], threshold) for k in range(A))
-    flagged = flag_anchors(stats, config)
-    names = ", ".join(map(str, flagged))
+        while True:
+            stats = tuple(
+                residual_stats(
+                    _left_out(table, chosen, k, description, (anchors, offsets, flagged), config),
+                    2.0 * config.loss_scale * config.range_sigma,
+                )
+                for k in range(A)
+            )
+            worst = _worst(stats, flagged, config)
+            if worst is None or len(flagged) >= A - 4:
+                break
+            flagged = (*flagged, worst)
+    names = ", ".join(map(str, sorted(flagged)))
     verdict = f"anchors {names} stand out: moved or blocked since the calibration?"
-    verdict = verdict if flagged else "fits"
-    return CalibrationCheck(stats, flagged, len(asm.rounds), verdict)
+    return CalibrationCheck(stats, tuple(sorted(flagged)), len(chosen),
+                            verdict if flagged else "fits")  # fmt: skip
+
+
+def _worst(
+    stats: tuple[ResidualStats, ...], flagged: tuple[int, ...], config: CalibrationConfig
+) -> int | None:
+    """The anchor (not yet flagged) whose left-out residuals stand out most: shifted
+    (median beyond ``flag_floor`` and half the anchors' typical spread) or spread out
+    (beyond ``check_ratio`` times the typical and ``flag_floor``); None if none does."""
+    rest = [k for k in range(len(stats)) if k not in flagged]
+    typical = float(np.median([stats[k].spread for k in rest]))
+    shift = max(config.flag_floor, 0.5 * typical)
+    wide = max(config.flag_floor, config.check_ratio * typical)
+    score = {k: max(abs(stats[k].median) / shift, stats[k].spread / wide) for k in rest}
+    k = max(score, key=lambda a: score[a])
+    return k if score[k] > 1.0 else None
 
 
 def _offsets_of(calibration: SensorCalibration | CalibrationResult) -> NDArray[np.float64]:

@@ -76,6 +76,9 @@ class CalibrationConfig:
     """...and exceeds this (m): a noisy but sound anchor is not flagged."""
     max_residual: float = 0.06
     """Residual spread (m, robust standard deviation) above which the verdict is doubtful."""
+    check_ratio: float = 1.8
+    """In a check of a calibration against later ranges (left-out residuals), an anchor
+    whose residual spread exceeds this many times the others' typical one is flagged."""
     outlier_fraction: float = 0.2
     """Share of an anchor's ranges that are outliers above which it is flagged (and
     above 3 times the anchors' median share)."""
