@@ -19,7 +19,7 @@ from estimation.uwb_calibration.config import CalibrationConfig
 from estimation.uwb_calibration.geometry import chiral_quadruples, signed_volumes
 from estimation.uwb_calibration.lm import global_covariance
 from estimation.uwb_calibration.result import CalibrationError, CalibrationResult, residual_stats
-from estimation.uwb_calibration.rounds import jump_outliers, range_table, sample_rows
+from estimation.uwb_calibration.rounds import jump_outliers, merge_rounds, range_table, sample_rows
 from estimation.uwb_calibration.solve import Run, refine, solve_table
 from estimation.uwb_calibration.verdict import judge
 from tensegrity_gym.model.kinematics import weighted_kabsch
@@ -130,10 +130,11 @@ def _table(
             "a module (sensors.uwb.anchors lists them; their positions are not used)"
         )
     gap = config.round_gap if config.round_gap is not None else 0.5 / description.sensors.uwb.rate
-    return range_table(
+    table = range_table(
         t, module_i, module_j, ranges,
         n_nodes=description.n_nodes, n_anchors=n_anchors, round_gap=gap, rounds=rounds,
     )  # fmt: skip
+    return merge_rounds(table, config.sample_period)
 
 
 def _usable(
@@ -144,9 +145,9 @@ def _usable(
     usable = np.flatnonzero(valid.any(axis=1))
     if len(usable) < config.min_samples:
         raise CalibrationError(
-            f"{len(usable)} usable samples (UWB rounds in which a module ranged at least "
-            f"{config.min_anchor_ranges} anchors) of {table.n_rounds} rounds, "
-            f"{config.min_samples} needed"
+            f"{len(usable)} usable samples ({config.sample_period:g} s of UWB rounds in which "
+            f"a module ranged at least {config.min_anchor_ranges} anchors) of "
+            f"{table.n_rounds}, {config.min_samples} needed"
         )
     counted = valid[table.a_round, table.a_module]
     seen = np.bincount(table.a_anchor[counted], minlength=table.n_anchors)

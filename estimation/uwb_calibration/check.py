@@ -100,12 +100,12 @@ def check_calibration(
     config: CalibrationConfig | None = None,
     rng: np.random.Generator | None = None,
     rounds: ArrayLike | None = None,
-    samples: int = 200,
+    n_samples: int = 200,
 ) -> CalibrationCheck:
     """Check rows ``(t, module_i, module_j, range)`` (as :func:`calibrate_ranges` takes
     them) against ``calibration``'s anchors (floor frame) and offsets: for each anchor,
     the residuals of its ranges at module positions fitted to the other anchors alone
-    (on up to ``samples`` rounds), so that a moved anchor cannot hide in the fit; flag
+    (on up to ``n_samples`` samples), so that a moved anchor cannot hide in the fit; flag
     the anchors whose residuals stand out.
 
     Raises:
@@ -123,7 +123,7 @@ def check_calibration(
     n, A = table.n_nodes, table.n_anchors
     anchors = np.asarray(calibration.anchors, dtype=np.float64)
     offsets = _pair_offsets(np.asarray(_offsets_of(calibration)), n, A)
-    chosen = _spread(usable, samples, rng)
+    chosen = _spread(usable, n_samples, rng)
     flagged: tuple[int, ...] = ()
     with single_threaded_blas():
         while True:

@@ -19,11 +19,12 @@ class CalibrationConfig:
     """The indicator alpha of papers/000 eq. 9: a module at a sample counts only with at
     least this many anchors ranged."""
     max_samples: int = 1000
-    """Samples (UWB rounds) the final solve uses at most, drawn spread over the run (the
-    paper used about 400; more sharpen the anchors, which the robot's small travel
-    leaves loose, at a cost linear in their number)."""
+    """Samples the final solve uses at most, drawn spread over the run (the paper used
+    about 400; more sharpen the anchors, which the robot's small travel leaves loose,
+    at a cost linear in their number)."""
     min_samples: int = 60
-    """Fewer usable samples than this and the data cannot decide: CalibrationError."""
+    """Fewer usable samples than this (12 s of ranging at the default period) and the
+    data cannot decide: CalibrationError."""
     min_pair_ranges: int = 8
     """A robot-anchor pair with fewer ranges in the solve has a doubtful offset."""
     range_sigma: float = 0.03
@@ -64,6 +65,11 @@ class CalibrationConfig:
     window: float = 0.4
     """Length (s) of the windows whose ranges are pooled as if the robot stood still:
     for the starting shape, and for the floor and the handedness checks."""
+    sample_period: float = 0.2
+    """Samples are the UWB rounds in bins of this many seconds (3 rounds at 15 Hz): with
+    30-70 % of packets lost, one round seldom has 4 anchors for a module; a few rounds
+    together mostly do, while the robot moves millimetres to centimetres. A period
+    shorter than a round keeps one round a sample."""
     round_gap: float | None = None
     """Rows closer in time than this (s) belong to one UWB round; None: half the round
     period of the description's ``sensors.uwb.rate``."""

@@ -82,10 +82,11 @@ class CalibrationResult:
     robot_pair_count: NDArray[np.intp]
     """(n, n) robot-robot ranges in the solve, per pair (symmetric)."""
     n_samples: int
-    """Samples (UWB rounds) in the final solve."""
+    """Samples (UWB rounds over ``sample_period``) in the final solve."""
     n_usable: int
-    """Rounds with at least one module ranging 4 anchors (alpha = 1)."""
+    """Samples with at least one module ranging 4 anchors (alpha = 1)."""
     n_rounds: int
+    """Samples in the run."""
     cost: float
     """Robust cost per range in the final solve (dimensionless, residuals over sigma)."""
     verdict: str
@@ -159,7 +160,7 @@ class CalibrationResult:
         lines = [
             f"verdict: {self.verdict}",
             f"samples: {self.n_samples} used of {self.n_usable} usable ({self.n_rounds} "
-            f"rounds); mean offset {self.mean_offset:.3f} m; cost {self.cost:.3f}",
+            f"in all); mean offset {self.mean_offset:.3f} m; cost {self.cost:.3f}",
         ]
         for a, (p, s) in enumerate(zip(self.anchors, self.anchor_stats, strict=True)):
             flag = "  FLAGGED" if a in self.flagged_anchors else ""

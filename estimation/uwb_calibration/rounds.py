@@ -7,7 +7,7 @@ uncorrected range m_{j,i} of papers/000 eq. 6-7 (true distance + o_ij + noise).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -19,7 +19,14 @@ if TYPE_CHECKING:
 
     from tensegrity_gym.model.samples import UwbRangeSample
 
-__all__ = ["RangeTable", "group_rounds", "jump_outliers", "range_table", "sample_rows"]
+__all__ = [
+    "RangeTable",
+    "group_rounds",
+    "jump_outliers",
+    "merge_rounds",
+    "range_table",
+    "sample_rows",
+]
 
 
 @dataclass(frozen=True)
@@ -70,6 +77,23 @@ class RangeTable:
             self.r_round[r], self.r_first[r], self.r_second[r], self.r_range[r],
             dropped,
         )  # fmt: skip
+
+
+def merge_rounds(table: RangeTable, period: float) -> RangeTable:
+    """The table with its rounds merged into samples: consecutive rounds in bins of
+    ``period`` s from the first. With packets lost, one round often has too few
+    anchors per module for alpha (4); a few rounds together have them, while the robot
+    moves millimetres to a few centimetres."""
+    if table.n_rounds == 0:
+        return table
+    t = table.round_times
+    bins = np.floor((t - t[0]) / period).astype(np.intp)
+    _, merged = np.unique(bins, return_inverse=True)
+    counts = np.bincount(merged)
+    times = np.bincount(merged, weights=t) / counts
+    return replace(
+        table, round_times=times, a_round=merged[table.a_round], r_round=merged[table.r_round]
+    )
 
 
 def group_rounds(t: NDArray[np.float64], gap: float) -> NDArray[np.intp]:
