@@ -95,6 +95,13 @@ def run_benchmarks(
 
         results["icp"] = bench_icp()
         results["proprioceptive"] = _bench_proprioceptive(speed_steps)
+        from agents.bench_calibration import bench_calibration
+        from agents.bench_calibration_loop import bench_calibration_in_loop
+
+        results["uwb_calibration"] = {
+            "calibrator": bench_calibration(),
+            "ukf_estimated_against_true": bench_calibration_in_loop(),
+        }
     if bag_minutes > 0:
         from agents.bench_bags import bench_bags
 

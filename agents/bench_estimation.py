@@ -66,13 +66,20 @@ def _gait_policy() -> Any:
     return policy
 
 
-def record_face_transition(env_id: str, seed: int, steps: int = 200) -> RecordedRun:
-    """The robot rolls face to face under its scripted gait."""
-    return record_run(env_id, _gait_policy(), steps, seed)
+def record_face_transition(
+    env_id: str, seed: int, steps: int = 200, **make_kwargs: Any
+) -> RecordedRun:
+    """The robot rolls face to face under its scripted gait (``make_kwargs``: more
+    arguments of ``gym.make``)."""
+    return record_run(env_id, _gait_policy(), steps, seed, **make_kwargs)
 
 
 def record_stationary_actuation(
-    env_id: str, seed: int, steps: int = 200, cables: tuple[int, int] = (0, 1)
+    env_id: str,
+    seed: int,
+    steps: int = 200,
+    cables: tuple[int, int] = (0, 1),
+    **make_kwargs: Any,
 ) -> RecordedRun:
     """The robot stays on its face while two actuated cables follow phase-shifted
     stepwise sines (a new level every second, period 8 s, a quarter of the motor range).
@@ -86,7 +93,7 @@ def record_stationary_actuation(
             hold[k] = np.clip(hold[k] - 0.25 + 0.25 * np.sin(2 * np.pi * t / 8.0 + phase), -1, 1)
         return hold
 
-    return record_run(env_id, policy, steps, seed)
+    return record_run(env_id, policy, steps, seed, **make_kwargs)
 
 
 def _score(run: RecordedRun, config: UkfConfig) -> dict[str, Any]:

@@ -204,6 +204,7 @@ def _estimate(args: argparse.Namespace) -> int:
             description=description,
             strict=args.strict,
             progress=not args.no_progress,
+            calibration=args.calibration,
         )
     except BagsFailedError as err:  # each failure is logged; the other bags were estimated
         results, failed = err.results, err
@@ -222,6 +223,17 @@ def _estimate(args: argparse.Namespace) -> int:
     if failed is not None:
         log.error("%s", failed)
         return 2
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from agents.calibration_run import calibrate_command
+
+    result = calibrate_command(
+        bag=args.bag, env_id=args.env, seconds=args.seconds, world_seed=args.world_seed,
+        robot=args.robot, out=Path(args.out),
+    )  # fmt: skip
+    sys.stdout.write(result + "\n")
     return 0
 
 
@@ -374,7 +386,24 @@ def build_parser() -> argparse.ArgumentParser:
         "--strict", action="store_true", help="stop at the first bad message instead of skipping"
     )
     est.add_argument("--no-progress", action="store_true", help="no progress bar")
+    est.add_argument(
+        "--calibration",
+        default=None,
+        help="a UWB calibration file (tensegrity-gym calibrate) to use instead of the bag's",
+    )
     est.set_defaults(func=_estimate)
+
+    cal = sub.add_parser(
+        "calibrate",
+        help="calibrate the UWB anchors and offsets from a recorded run of the robot moving",
+    )
+    cal.add_argument("bag", nargs="?", default=None, help="a bag of the robot moving")
+    cal.add_argument("--env", default=None, help="or record a calibration run of this env id")
+    cal.add_argument("--seconds", type=float, default=120.0, help="length of that run (s)")
+    cal.add_argument("--world-seed", type=int, default=0, help="the simulated lab's seed")
+    cal.add_argument("--robot", default=None, help="robot preset or YAML, for a bare bag")
+    cal.add_argument("--out", required=True, help="the calibration file to write (YAML)")
+    cal.set_defaults(func=_calibrate)
 
     from hardware.link.emulator import add_arguments
 

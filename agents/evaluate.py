@@ -79,13 +79,22 @@ class Condition:
     sensing: Callable[[RobotDescription], RobotDescription] | None = None
     """Turns the robot's nominal sensor suite into this condition's; None: nominal."""
     about: str = ""
+    calibration: str = "estimated"
+    """The UWB calibration the estimator gets (``gym.make(..., calibration=)``)."""
 
 
 CONDITIONS: dict[str, Condition] = {
     c.name: c
     for c in (
         Condition("oracle", "oracle", None, "ground truth"),
-        Condition("ukf", "ukf", None, "the UKF on the nominal sensors"),
+        Condition("ukf", "ukf", None, "the UKF on the nominal sensors, self-calibrated UWB"),
+        Condition(
+            "ukf_true_calibration",
+            "ukf",
+            None,
+            "the UKF given the simulator's own UWB anchors and offsets",
+            "true",
+        ),
         Condition("ukf_dropout", "ukf", _more_dropout, "75-90 % of UWB packets lost"),
         Condition("ukf_4_anchors", "ukf", _half_the_anchors, "4 UWB anchors instead of 8"),
         Condition("ukf_imu_noise", "ukf", _noisier_imu, "IMU noise and biases x5"),
@@ -279,7 +288,12 @@ def evaluate_policy(
     description = load_robot(robot)
     if condition.sensing is not None:
         description = condition.sensing(description)
-    env = gym.make(policy.env_id, robot=description, estimator=condition.estimator)
+    env = gym.make(
+        policy.env_id,
+        robot=description,
+        estimator=condition.estimator,
+        calibration=condition.calibration,
+    )
     try:
         return [run_episode(env, policy.act, seed + k) for k in range(episodes)]
     finally:

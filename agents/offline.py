@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
+from agents.calibration_run import load_uwb_calibration
 from agents.plots import plot_com_paths, plot_errors
 from agents.runs import estimation_errors
 from estimation.metrics import body_poses, trajectory_errors
@@ -36,6 +37,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.envs.roll_env import TensegrityEnv
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.estimate import Estimate
+    from tensegrity_gym.model.protocols import UwbCalibration
     from tensegrity_gym.model.samples import GroundTruth
 
 __all__ = [
@@ -194,8 +196,10 @@ def estimate_bag(
     strict: bool = False,
     settle: float = 2.0,
     progress: bool = True,
+    calibration: str | Path | None = None,
 ) -> list[dict[str, Any]]:
-    """Run ``estimator`` over every bag at ``bag`` (one bag, or a folder of episodes).
+    """Run ``estimator`` over every bag at ``bag`` (one bag, or a folder of episodes),
+    with the bag's own UWB calibration or a ``calibration`` file's.
 
     Writes per bag, into ``out`` (``out/<bag name>`` for a folder of several):
     ``estimate.tum`` (the body frame of :func:`estimation.metrics.body_poses`, origin at
@@ -209,10 +213,13 @@ def estimate_bag(
             and each failure was logged in one line.
     """
     estimator_spec(estimator)  # an unknown name is refused before any bag is opened
+    uwb = None if calibration is None else load_uwb_calibration(calibration)
     bags = find_bags(bag)
 
     def one(path: Path, folder: Path) -> dict[str, Any]:
-        return _estimate_one(path, estimator, folder, seed, description, strict, settle, progress)
+        return _estimate_one(
+            path, estimator, folder, seed, description, strict, settle, progress, uwb
+        )  # fmt: skip
 
     if len(bags) == 1:
         return [one(bags[0], out)]
@@ -230,6 +237,33 @@ def estimate_bag(
     return results
 
 
+def calibration_against_truth(backend: ReplayBackend) -> dict[str, Any]:
+    """Which UWB calibration the estimator had (``"recorded"``: the bag's, else the
+    file's path) and, where the bag's run info holds the simulator's own, how far the
+    one used lies from it: anchors, robot-anchor and robot-robot offsets (m RMS)."""
+    uwb = backend.uwb_calibration
+    out: dict[str, Any] = {"calibration": "recorded" if uwb is None else uwb.source}
+    truth = backend.reader.run_info.get("true_calibration")
+    if not isinstance(truth, dict):
+        return out
+    used, n = backend.calibration, backend.description.n_nodes
+    anchors = np.asarray(truth.get("anchors"), dtype=np.float64)
+    offsets = np.asarray(truth.get("uwb_offsets"), dtype=np.float64)
+    if anchors.shape != used.anchors.shape or offsets.shape != used.uwb_offsets.shape:
+        return out
+    robot = np.triu_indices(n, 1)
+
+    def rms(x: NDArray[np.float64]) -> float:
+        return round(float(np.sqrt(np.mean(np.square(x)))), 4)
+
+    out["calibration_against_true"] = {
+        "anchor_rms_m": rms(np.linalg.norm(used.anchors - anchors, axis=1)),
+        "robot_anchor_offset_rms_m": rms(used.uwb_offsets[n:, :n] - offsets[n:, :n]),
+        "robot_robot_offset_rms_m": rms(used.uwb_offsets[robot] - offsets[robot]),
+    }
+    return out
+
+
 def _estimate_one(
     path: Path,
     estimator: str,
@@ -239,8 +273,10 @@ def _estimate_one(
     strict: bool,
     settle: float,
     progress: bool,
+    uwb: UwbCalibration | None = None,
 ) -> dict[str, Any]:
     backend = ReplayBackend(path, description=description, strict=strict)
+    backend.uwb_calibration = uwb
     try:
         missing = estimator_spec(estimator).missing(
             backend.sample_kinds(), backend.description.name
@@ -276,6 +312,7 @@ def _estimate_one(
         "out_of_range": dict(backend.out_of_range),
         "reinitialisations": int(sum(e.reinitialised for e in estimates)),
         "finite": bool(finite.all()),
+        **calibration_against_truth(backend),
     }
     has_truth = [x is not None for x in truths]
     true_com = None

@@ -169,6 +169,12 @@ def make_training_env(
     # A fresh worker interpreter registers the ids by importing the module the id names.
     qualified = env_id if ":" in env_id else f"tensegrity_gym:{env_id}"
     use_processes = n_envs > 1 and (os.cpu_count() or 1) > 1
+    if use_processes:  # one reset here first: a UWB calibration run is then cached for all
+        import gymnasium as gym
+
+        first = gym.make(qualified, **env_kwargs)
+        first.reset(seed=seed)
+        first.close()
     return make_vec_env(
         qualified,
         n_envs=n_envs,

@@ -70,9 +70,10 @@ def sensed() -> dict[str, Any]:
 def test_the_gait_rolls_on_proprioceptive_estimates_and_drifts_a_few_percent(
     sensed: dict[str, Any],
 ) -> None:
-    # Measured: 3.7 m and 4.3 % drift over 150 steps of seed 0 (kinematics_std 8 cm).
+    # Measured: 3.7 m and 4.3 % drift over 150 steps of seed 0 (kinematics_std 8 cm);
+    # 12 % once the lab was drawn per world and the episode's sensor noise anew.
     assert sensed["path"] > 2.5, "the gait, reading the estimates, still rolls the robot"
-    assert sensed["drift"][-1] < 0.1 * sensed["path"]
+    assert sensed["drift"][-1] < 0.15 * sensed["path"]
     assert sensed["drift"].max() < 0.6
     assert sensed["healthy"] > 0.9
     assert sensed["health"]["divergences"] == {}

@@ -23,7 +23,7 @@ from tensegrity_gym.model.samples import (
     UwbRangeSample,
 )
 from tensegrity_gym.sim.backend import SimBackend
-from tensegrity_gym.sim.sensors import SPEED_OF_LIGHT
+from tensegrity_gym.sim.sensors import ANCHOR_PLACEMENT_STD, SPEED_OF_LIGHT
 
 if TYPE_CHECKING:
     from collections.abc import Iterator, Sequence
@@ -316,7 +316,8 @@ def test_uwb_offsets_are_symmetric_and_as_configured(rest: RestRun, d: RobotDesc
     mean_tol = 4.0 * cfg.offset_std / np.sqrt(off_diagonal.size)
     assert off_diagonal.mean() == pytest.approx(cfg.offset_mean, abs=mean_tol)
     assert off_diagonal.std() == pytest.approx(cfg.offset_std, rel=0.25)
-    np.testing.assert_array_equal(rest.calibration.anchors, d.anchors)
+    # The lab's anchors stand near the description's layout (drawn once per world).
+    assert np.abs(rest.calibration.anchors - d.anchors).max() < 5 * ANCHOR_PLACEMENT_STD
 
 
 def test_uwb_pairs(rest: RestRun, d: RobotDescription) -> None:

@@ -58,10 +58,12 @@ def test_gait_shapes_match_the_simulated_ones(gait: Gait) -> None:
     scores = shape_scores(description, frames, solutions)
     # Measured (seed 0, 120 steps): 5.3 cm over all cables, 2.3 cm over the taut ones
     # (papers/002: 4.63 cm, its cables all taut), nodes 12 cm: the gait lets cables
-    # out until slack, and a slack cable's reading says only that it is shorter.
+    # out until slack, and a slack cable's reading says only that it is shorter. With
+    # the lab drawn once per world (the episode's sensor noise drawn anew) the taut
+    # ones measured 4.0 cm, all 8.1 cm.
     assert scores["failures"] <= 2
-    assert scores["taut_distance_rmse_m"] < 0.035
-    assert scores["distance_rmse_m"] < 0.08
+    assert scores["taut_distance_rmse_m"] < 0.05
+    assert scores["distance_rmse_m"] < 0.09
     assert scores["node_rmse_m"] < 0.2
     assert np.median(seconds[1:]) < 0.01  # 0.6 ms measured; the paper's C++ took 4.1 ms
     for s in solutions:

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 
     from hardware.bag.reader import BagPeriod
     from tensegrity_gym.model.description import RobotDescription
-    from tensegrity_gym.model.protocols import ReadyCheck, SensorCalibration
+    from tensegrity_gym.model.protocols import ReadyCheck, SensorCalibration, UwbCalibration
     from tensegrity_gym.model.samples import GroundTruth
 
 __all__ = ["ReplayBackend"]
@@ -60,6 +60,8 @@ class ReplayBackend:
         self._periods: Iterator[BagPeriod] | None = None
         self._next: BagPeriod | None = None
         self._truth: GroundTruth | None = None
+        self.uwb_calibration: UwbCalibration | None = None
+        """Anchors and offsets that replace the bag's (``estimate --calibration``)."""
         self._frame: RgbdFrame | None = None
         self._warned = False
         self.steps_taken = 0
@@ -69,7 +71,10 @@ class ReplayBackend:
 
     @property
     def calibration(self) -> SensorCalibration:
-        return self.reader.calibration
+        """The bag's, or :attr:`uwb_calibration`'s anchors and offsets where set (an
+        estimator re-run with another calibration)."""
+        own = self.reader.calibration
+        return own if self.uwb_calibration is None else self.uwb_calibration.applied_to(own)
 
     @property
     def clock_origin_ns(self) -> int:

@@ -66,7 +66,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
-    from tensegrity_gym.model.protocols import ReadyCheck, SensorCalibration
+    from tensegrity_gym.model.protocols import ReadyCheck, SensorCalibration, UwbCalibration
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
 __all__ = ["DriverTimeouts", "LinkError", "ZenohDriver"]
@@ -165,6 +165,8 @@ class ZenohDriver:
         self.limiter = CommandLimiter(description, control_period, max_change)
         self._given_calibration = calibration
         self._calibration: SensorCalibration | None = calibration
+        self.uwb_calibration: UwbCalibration | None = None
+        """Anchors and offsets that replace the robot's (``calibration=PATH``)."""
         self.inbox_size, self.inbox_bytes = inbox_size, inbox_bytes
         self._inbox: deque[tuple[str, bytes, float]] = deque()
         self._inbox_lock = threading.Lock()  # Zenoh calls back from its own threads
@@ -390,9 +392,12 @@ class ZenohDriver:
 
     @property
     def calibration(self) -> SensorCalibration:
+        """The robot's, or :attr:`uwb_calibration`'s anchors and offsets where set."""
         if self._calibration is None:
             raise RuntimeError("call reset() before reading the calibration")
-        return self._calibration
+        if self.uwb_calibration is None:
+            return self._calibration
+        return self.uwb_calibration.applied_to(self._calibration)
 
     def _read_header(self) -> None:
         raw = self._header.get(m.DESCRIPTION_TOPIC)

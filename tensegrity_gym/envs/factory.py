@@ -6,6 +6,7 @@ import inspect
 import os
 from typing import TYPE_CHECKING, Any
 
+from tensegrity_gym.envs.calibration import apply_calibration, check_calibration
 from tensegrity_gym.envs.roll_env import TensegrityEnv
 from tensegrity_gym.model.checks import check_number
 from tensegrity_gym.model.description import RobotDescription, load_robot
@@ -79,6 +80,7 @@ def make_backend(
     gui: bool,
     spawn_radius: float,
     terrain: str | os.PathLike[str] | Terrain = "flat",
+    world_seed: int = 0,
 ) -> Backend:
     """The backend a ``driver`` names: None for PyBullet (on ``terrain``, see
     :mod:`tensegrity_gym.sim.terrain`), ``"zenoh/tcp/HOST:PORT"`` for a robot on the
@@ -94,6 +96,7 @@ def make_backend(
             gui=gui,
             spawn_radius=spawn_radius,
             terrain=terrain,
+            world_seed=world_seed,
         )
     if isinstance(driver, str):
         if driver.startswith("zenoh/"):
@@ -171,6 +174,8 @@ def make_env(
     control_period: float = 0.1,
     time_step: float = 0.001,
     terrain: str | Path | Terrain = "flat",
+    calibration: str | Path = "estimated",
+    world_seed: int = 0,
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -198,6 +203,12 @@ def make_env(
             ``"rough"`` (smooth random bumps drawn at each reset from its seed), a lab's
             registered name, a ``.npy``/``.png`` height map with its ``.yaml`` sidecar,
             or a :class:`~tensegrity_gym.sim.terrain.Terrain`. No estimator is told it.
+        calibration: the UWB anchors and offsets the estimators get
+            (:mod:`tensegrity_gym.envs.calibration`): ``"estimated"`` (a lab's own: in
+            the simulator, calibrated from a calibration run in this world, cached on
+            disk), ``"true"`` (the simulator's, for ablations) or a calibration file.
+        world_seed: draws the simulated lab once for the env's life: where its anchors
+            stand and every pair's UWB offset (a real lab's are constants).
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -215,6 +226,7 @@ def make_env(
         terrain=terrain,
         driver=driver,
     )
+    check_calibration(calibration, world_seed)
     # The task checks its own arguments before anything is started.
     spec.create(description, control_period, task_arguments)
     backend = make_backend(
@@ -225,10 +237,15 @@ def make_env(
         gui=render_mode == "human",
         spawn_radius=spawn_radius,
         terrain=terrain,
+        world_seed=world_seed,
     )
     try:
+        source = apply_calibration(
+            backend, calibration, world_seed=world_seed, control_period=control_period,
+            time_step=time_step,
+        )  # fmt: skip
         return _assemble(backend, estimator, spec, description, task_arguments, record_dir,
-                         render_mode)  # fmt: skip
+                         render_mode, source)  # fmt: skip
     except BaseException:
         backend.close()  # nothing half made stays open: a simulator, a link session
         raise
@@ -242,6 +259,7 @@ def _assemble(
     task_arguments: dict[str, Any],
     record_dir: str | Path | None,
     render_mode: str | None,
+    calibration: str,
 ) -> TensegrityEnv:
     """The env around a made ``backend``: its estimator, recording and task."""
     est_name = estimator if isinstance(estimator, str) else None
@@ -251,15 +269,23 @@ def _assemble(
     if record_dir is not None:
         from hardware.recording import BagSink, RecordingBackend, RecordingEstimator
 
-        sink = BagSink(
-            record_dir,
-            {"robot": description.name, "estimator": est_name or type(estimator).__name__},
-        )
+        run_info: dict[str, Any] = {
+            "robot": description.name,
+            "estimator": est_name or type(estimator).__name__,
+            "calibration": calibration,
+        }
+        truth = getattr(backend, "true_uwb", None)
+        if truth is not None:  # the simulator's, beside the calibration the bag carries
+            run_info["true_calibration"] = {
+                "anchors": truth.anchors.tolist(),
+                "uwb_offsets": truth.uwb_offsets.tolist(),
+            }
+        sink = BagSink(record_dir, run_info)
         backend = RecordingBackend(backend, sink)
         est = RecordingEstimator(est, sink, backend)
     # A replayed bag's own control period.
     made = spec.create(description, backend.control_period, task_arguments)
-    return TensegrityEnv(backend, est, made, render_mode=render_mode)
+    return TensegrityEnv(backend, est, made, render_mode=render_mode, calibration=calibration)
 
 
 def make_roll_env(

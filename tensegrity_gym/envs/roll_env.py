@@ -43,7 +43,9 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     ``estimator_healthy``, ``estimator_reinitialised``, ``estimator_failed_streams``
     (streams the estimator stopped fusing as implausible), ``estimator_rejected``
     (implausible measurements by kind), ``reward_rejected`` (why a step earned no reward,
-    else None), ``sim_diverged`` and, where the backend has ground truth, ``com_true`` and
+    else None), ``sim_diverged``, ``calibration`` (where the estimators' UWB calibration
+    came from: ``"estimated"``, ``"true"`` or a file) and, where the backend has ground
+    truth, ``com_true`` and
     ``estimation_error`` (CoM distance, m), and the task's own entries (:meth:`Task.info`).
     """
 
@@ -57,6 +59,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         *,
         render_mode: str | None = None,
         render_size: tuple[int, int] = (480, 360),
+        calibration: str = "estimated",
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -67,6 +70,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self.task = task
         self.render_mode = render_mode
         self.render_size = render_size
+        self.calibration = calibration
+        """Where the estimators' UWB calibration comes from (``info["calibration"]``)."""
         d = backend.description
         self.action_space = spaces.Box(-1.0, 1.0, (d.n_actuated,), dtype=np.float32)
         self.observation_space = task.observation_space
@@ -116,6 +121,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             "estimator_failed_streams": list(estimate.failed_streams),
             "estimator_rejected": dict(estimate.rejected or {}),
             "reward_rejected": None,
+            "calibration": self.calibration,
         }
         info.update(self.task.info(estimate))
         truth = None if diverged else self.backend.ground_truth()

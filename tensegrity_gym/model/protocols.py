@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 if TYPE_CHECKING:
@@ -24,6 +24,7 @@ __all__ = [
     "SensorCalibration",
     "StepResult",
     "Task",
+    "UwbCalibration",
     "backend_can_wait",
     "backend_sample_kinds",
 ]
@@ -44,6 +45,31 @@ class SensorCalibration:
     """(3, 3) pixels."""
     camera_pose: NDArray[np.float64]
     """Camera to world transform, (4, 4); the camera looks along its +z axis."""
+
+
+@dataclass(frozen=True)
+class UwbCalibration:
+    """The UWB part of a :class:`SensorCalibration` as a lab calibrates it (papers/000
+    section III-C): where the anchors stand and every pair's offset, in the world frame
+    the anchors define."""
+
+    anchors: NDArray[np.float64]
+    """(n_anchors, 3) metres."""
+    uwb_offsets: NDArray[np.float64]
+    """(n_modules, n_modules) metres, symmetric, as :attr:`SensorCalibration.uwb_offsets`."""
+    source: str = "estimated"
+    """Where it came from, for ``info`` and the run info: ``"estimated"``, a file's path."""
+
+    def applied_to(self, calibration: SensorCalibration) -> SensorCalibration:
+        """``calibration`` with these anchors and offsets; refused, naming both sizes,
+        where they are not the same scene's."""
+        n, a = calibration.uwb_offsets.shape[0], len(calibration.anchors)
+        if self.uwb_offsets.shape != (n, n) or self.anchors.shape != (a, 3):
+            raise ValueError(
+                f"calibration {self.source!r} has {len(self.anchors)} anchors and "
+                f"{self.uwb_offsets.shape[0]} UWB modules; the scene has {a} and {n}"
+            )
+        return replace(calibration, anchors=self.anchors, uwb_offsets=self.uwb_offsets)
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ import numpy as np
 
 from tensegrity_gym.model.kinematics import center_of_mass
 from tensegrity_gym.model.lie import quat_multiply, quat_rotate
-from tensegrity_gym.model.protocols import SensorCalibration, StepResult
+from tensegrity_gym.model.protocols import SensorCalibration, StepResult, UwbCalibration
 from tensegrity_gym.model.samples import GROUND_TRUTH, GroundTruth
 from tensegrity_gym.sim.sensors import (
     CableLengthModel,
@@ -27,6 +27,7 @@ from tensegrity_gym.sim.world import PhysicsWorld
 
 if TYPE_CHECKING:
     import os
+    from collections.abc import Callable
 
     from numpy.typing import NDArray
 
@@ -240,6 +241,14 @@ class SimBackend:
             ``"rough"``, a lab's registered name, a ``.npy``/``.png`` height map or a
             :class:`~tensegrity_gym.sim.terrain.Terrain`; built at each reset from the
             reset's rng. Only the simulation sees it: no estimator is told the map.
+        world_seed: draws the lab once, for the life of the backend (a real lab's are
+            constants): where the UWB anchors stand, every pair's offset o_ij and the
+            modules' clock drift (:meth:`UwbModel.draw_world`). Episodes come from
+            :meth:`reset`'s rng.
+        uwb_calibration: the anchors and offsets :attr:`calibration` hands the
+            estimators (a lab's calibration, e.g. from ``estimation.uwb_calibration``),
+            or a callable making them, called at the first :meth:`reset` (a calibration
+            run); None: the simulator's own (:attr:`true_calibration`, for ablations).
     """
 
     def __init__(
@@ -253,6 +262,8 @@ class SimBackend:
         spawn_radius: float = 0.0,
         settle_time: float = 5.0,
         terrain: str | os.PathLike[str] | Terrain = "flat",
+        world_seed: int = 0,
+        uwb_calibration: UwbCalibration | Callable[[], UwbCalibration] | None = None,
     ) -> None:
         steps = control_period / time_step
         if steps < 1 or abs(steps - round(steps)) > 1e-9:
@@ -281,6 +292,9 @@ class SimBackend:
         self.cable_length = CableLengthModel(s.cable_length, description)
         self.contact = ContactModel(s.contact, description)
         self.uwb = UwbModel(s.uwb, description)
+        self.world_seed = world_seed
+        self.uwb.draw_world(np.random.default_rng(world_seed))
+        self.uwb_calibration = uwb_calibration
         self.camera_model = CameraModel(s.camera)
         rates = _sensor_rates(description)
         carried = description.sample_kinds
@@ -310,6 +324,8 @@ class SimBackend:
             "spawn_radius": self.spawn_radius,
             "settle_time": self.settle_time,
             "terrain": self.terrain_source,
+            "world_seed": self.world_seed,
+            "uwb_calibration": self.uwb_calibration,
         }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -323,10 +339,28 @@ class SimBackend:
         return self._world
 
     @property
-    def calibration(self) -> SensorCalibration:
+    def true_uwb(self) -> UwbCalibration:
+        """The world's anchors and offsets as drawn (fixed from construction on)."""
+        return UwbCalibration(self.uwb.anchors.copy(), self.uwb.offsets.copy(), source="true")
+
+    @property
+    def true_calibration(self) -> SensorCalibration:
+        """What the simulator drew: the anchors where they stand, the offsets it adds."""
         if self._calibration is None:
             raise RuntimeError("call reset() before reading the calibration")
         return self._calibration
+
+    @property
+    def calibration(self) -> SensorCalibration:
+        """What the estimators get: :attr:`uwb_calibration` where set (a lab's, made
+        from recorded ranges), else the simulator's own."""
+        truth = self.true_calibration
+        lab = self.uwb_calibration
+        if lab is None:
+            return truth
+        if callable(lab):  # not made yet: reset makes it
+            raise RuntimeError("call reset() before reading the calibration")
+        return lab.applied_to(truth)
 
     def _camera_pose(self) -> NDArray[np.float64]:
         """Camera-to-world transform (4, 4): +z along the view, +x right, +y down."""
@@ -376,9 +410,11 @@ class SimBackend:
         self._diverged = False
 
         self.uwb.reset(rng)
+        if callable(self.uwb_calibration):  # the lab calibrates once, before its first run
+            self.uwb_calibration = self.uwb_calibration()
         self._calibration = SensorCalibration(
             uwb_offsets=self.uwb.offsets.copy(),
-            anchors=d.anchors,
+            anchors=self.uwb.anchors.copy(),
             camera_intrinsics=d.sensors.camera.intrinsics,
             camera_pose=self._camera_pose(),
         )

@@ -238,6 +238,11 @@ class ContactModel:
         return out
 
 
+ANCHOR_PLACEMENT_STD = 0.05
+"""m, per axis: how far from the description's layout a lab's anchors end up (tripods
+put by hand at the marked spots)."""
+
+
 class UwbModel:
     """DW1000 ranging by timed broadcast, symmetric double-sided two-way (papers/000 III).
 
@@ -267,12 +272,20 @@ class UwbModel:
         self.drift = np.zeros(self.n_modules)
         self.reject_fraction = 0.0
 
-    def reset(self, rng: np.random.Generator) -> None:
+    def draw_world(self, rng: np.random.Generator) -> None:
+        """What stays fixed for the life of a lab: where the anchors were put (the
+        description's layout, each within :data:`ANCHOR_PLACEMENT_STD` per axis), every
+        pair's offset o_ij (antenna delays) and every module's clock drift."""
         c = self.config
+        nominal = np.asarray(c.anchors, dtype=np.float64).reshape(-1, 3)
+        self.anchors = nominal + rng.normal(0.0, ANCHOR_PLACEMENT_STD, nominal.shape)
         o = rng.normal(c.offset_mean, c.offset_std, (self.n_modules, self.n_modules))
         self.offsets = np.triu(o, 1) + np.triu(o, 1).T
         self.drift = rng.uniform(-1.0, 1.0, self.n_modules) * c.clock_drift_ppm * 1e-6
-        self.reject_fraction = float(rng.uniform(*c.reject_fraction))
+
+    def reset(self, rng: np.random.Generator) -> None:
+        """What changes between runs: the share of packets lost to multipath."""
+        self.reject_fraction = float(rng.uniform(*self.config.reject_fraction))
 
     def module_positions(self, nodes: NDArray[np.float64]) -> NDArray[np.float64]:
         """Positions of all modules (n_modules, 3) for node positions (n, 3)."""

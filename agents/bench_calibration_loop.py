@@ -1,0 +1,66 @@
+"""What self-calibration costs the UKF (issue 15): the same recorded runs replayed with
+the simulator's own UWB anchors and offsets and with the calibrator's, side by side.
+
+Each run is recorded once with the truth's calibration (``calibration="true"``, world
+seed 0); the estimated calibration is the one ``gym.make`` hands the estimators by
+default in that world (:func:`agents.calibration_run.estimated_uwb_calibration`, from
+its calibration run, cached). Scenarios as papers/000's study
+(:mod:`agents.bench_estimation`): SUPERball's face transition and stationary actuation,
+and the 3-bar robot rolling under its gait.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from agents.bench_estimation import record_face_transition, record_stationary_actuation
+from agents.calibration_run import estimated_uwb_calibration
+from agents.runs import replay, trajectory_errors
+from estimation.ukf import UkfEstimator
+
+if TYPE_CHECKING:
+    from agents.runs import RecordedRun
+
+__all__ = ["SCENARIOS", "bench_calibration_in_loop"]
+
+SCENARIOS: dict[str, tuple[str, Any]] = {
+    "superball face transition": ("tensegrity_gym/SuperBallRoll-v0", record_face_transition),
+    "superball stationary actuation": (
+        "tensegrity_gym/SuperBallRoll-v0",
+        record_stationary_actuation,
+    ),
+    "three_bar face transition": ("tensegrity_gym/ThreeBarRoll-v0", record_face_transition),
+}
+"""Name: (env id, recorder(env_id, seed, steps, **make_kwargs))."""
+
+
+def _com_rmse(run: RecordedRun) -> float:
+    return float(trajectory_errors(run, replay(run, UkfEstimator()))["com_rmse_m"])
+
+
+def bench_calibration_in_loop(
+    seeds: tuple[int, ...] = (0, 1), steps: int = 200, world_seed: int = 0
+) -> dict[str, Any]:
+    """Per scenario: the UKF's CoM RMSE (m, mean over ``seeds``) with the true and with
+    the estimated calibration, and their ratio (target: at most 1.1)."""
+    rows = []
+    for name, (env_id, record) in SCENARIOS.items():
+        true_rmse, estimated_rmse = [], []
+        for seed in seeds:
+            run = record(env_id, seed, steps, calibration="true", world_seed=world_seed)
+            lab = estimated_uwb_calibration(run.description, world_seed=world_seed)
+            calibrated = replace(run, calibration=lab.applied_to(run.calibration))
+            true_rmse.append(_com_rmse(run))
+            estimated_rmse.append(_com_rmse(calibrated))
+        t, e = float(np.mean(true_rmse)), float(np.mean(estimated_rmse))
+        rows.append({
+            "scenario": name,
+            "com_rmse_true_calibration_m": round(t, 4),
+            "com_rmse_estimated_calibration_m": round(e, 4),
+            "estimated_over_true": round(e / t, 3) if t > 0 else None,
+        })  # fmt: skip
+    return {"world_seed": world_seed, "seeds": list(seeds), "rows": rows,
+            "targets": {"estimated_over_true": 1.1}}  # fmt: skip
