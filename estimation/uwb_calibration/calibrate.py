@@ -249,7 +249,8 @@ def _result(
     r = _residuals(solved)
     spread = 1.4826 * float(np.median(np.abs(r - np.median(r)))) if len(r) else np.nan
     threshold = max(config.outlier_sigmas * spread, 2.0 * config.loss_scale * config.range_sigma)
-    anchor_stats = tuple(residual_stats(r[a == k], threshold) for k in range(A))
+    times = table.round_times[solved.assembly.rounds[p.position_sample[p.anchor_rows[2]]]]
+    anchor_stats = tuple(residual_stats(r[a == k], threshold, times[a == k]) for k in range(A))
     pair_stats = tuple(
         tuple(residual_stats(r[(a == k) & (j == q)], threshold) for q in range(n)) for k in range(A)
     )

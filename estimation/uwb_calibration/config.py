@@ -88,7 +88,7 @@ class CalibrationConfig:
     outlier_fraction: float = 0.2
     """Share of an anchor's ranges that are outliers above which it is flagged (and
     above 3 times the anchors' median share)."""
-    max_anchor_sigma: float = 0.05
+    max_anchor_sigma: float = 0.03
     """Predicted anchor standard error (m) above which the verdict is doubtful: the
     robot did not travel far enough across the anchors to fix them better."""
 

@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 VERSION = 1
-_STATS = ("count", "median", "spread", "rms", "outlier_fraction")
+_STATS = ("count", "median", "spread", "rms", "outlier_fraction", "drift")
 
 
 class CalibrationFileError(ValueError):
@@ -140,7 +140,9 @@ class _Reader:
             raise self.fail(prefix + str(key), "unknown field")
         return value
 
-    def array(self, value: Any, field: str, shape: tuple[int | None, ...]) -> NDArray[np.float64]:
+    def array(
+        self, value: Any, field: str, shape: tuple[int | None, ...], *, finite: bool = True
+    ) -> NDArray[np.float64]:
         try:
             out = np.asarray(value, dtype=np.float64)
         except (TypeError, ValueError):
@@ -149,7 +151,7 @@ class _Reader:
             s is not None and s != d for s, d in zip(shape, out.shape, strict=True)
         ):
             raise self.fail(field, f"expected shape {_shape(shape)}, got {out.shape}")
-        if not np.all(np.isfinite(out)):
+        if finite and not np.all(np.isfinite(out)):
             raise self.fail(field, "must be finite")
         return out
 
@@ -183,7 +185,8 @@ def _result(
         for k, s in enumerate(listed)
     ]
     pr = r.mapping(d["pair_residuals"], "result.pair_residuals", set(_STATS), set())
-    pair = {k: r.array(pr[k], f"result.pair_residuals.{k}", (A, n)) for k in _STATS}
+    # A pair without a range has no median, an anchor no drift in a short run: NaN.
+    pair = {k: r.array(pr[k], f"result.pair_residuals.{k}", (A, n), finite=False) for k in _STATS}
     pair_stats = tuple(
         tuple(_stats({k: pair[k][a, j] for k in _STATS}) for j in range(n)) for a in range(A)
     )

@@ -34,10 +34,19 @@ class ResidualStats:
     """Root mean square of the inliers (the ranges that are not outliers)."""
     outlier_fraction: float
     """Share of ranges off by more than the outlier threshold (multipath)."""
+    drift: float = float("nan")
+    """Largest difference (m) between the medians of the residuals in the run's four
+    quarters: an anchor moved during the run shifts them from one quarter to the next."""
 
 
-def residual_stats(residuals: NDArray[np.float64], threshold: float) -> ResidualStats:
-    """:class:`ResidualStats` of ``residuals`` (m), (k,), outliers beyond ``threshold`` m."""
+_QUARTER_MIN = 5  # residuals a quarter needs for its median to count
+
+
+def residual_stats(
+    residuals: NDArray[np.float64], threshold: float, times: NDArray[np.float64] | None = None
+) -> ResidualStats:
+    """:class:`ResidualStats` of ``residuals`` (m), (k,), outliers beyond ``threshold``
+    m; the drift over the quarters of ``times`` (s), (k,), where given."""
     r = np.asarray(residuals, dtype=np.float64)
     if len(r) == 0:
         return ResidualStats(0, float("nan"), float("nan"), float("nan"), float("nan"))
@@ -45,7 +54,12 @@ def residual_stats(residuals: NDArray[np.float64], threshold: float) -> Residual
     inlier = np.abs(r - med) <= threshold
     rms = float(np.sqrt(np.mean(r[inlier] ** 2))) if inlier.any() else float("nan")
     spread = float(1.4826 * np.median(np.abs(r - med)))
-    return ResidualStats(len(r), med, spread, rms, float(1.0 - inlier.mean()))
+    drift = float("nan")
+    if times is not None and len(r) >= 4 * _QUARTER_MIN:
+        quarter = np.minimum((4 * np.argsort(np.argsort(times)) // len(r)), 3)
+        medians = [np.median(r[quarter == q]) for q in range(4)]
+        drift = float(np.max(medians) - np.min(medians))
+    return ResidualStats(len(r), med, spread, rms, float(1.0 - inlier.mean()), drift)
 
 
 @dataclass(frozen=True)

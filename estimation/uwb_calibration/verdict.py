@@ -16,16 +16,21 @@ __all__ = ["flag_anchors", "judge"]
 
 
 def flag_anchors(stats: Sequence[ResidualStats], config: CalibrationConfig) -> tuple[int, ...]:
-    """Anchors whose residuals stand out from the others' (their robust spread, median
-    or outlier share): a moved or blocked anchor, or one seeing multipath."""
+    """Anchors whose residuals stand out from the others' (their robust spread, median,
+    outlier share or drift over the run): a moved or blocked anchor, or one seeing
+    multipath."""
     s = np.array([x.spread for x in stats])
     m = np.array([x.median for x in stats])
     o = np.array([x.outlier_fraction for x in stats])
+    d = np.array([x.drift for x in stats])
     typical, typical_out = float(np.nanmedian(s)), float(np.nanmedian(o))
     wide = (s > config.flag_ratio * typical) & (s > config.flag_floor)
     shifted = np.abs(m) > max(config.flag_floor, config.flag_ratio * typical)
     noisy = o > max(config.outlier_fraction, 3.0 * typical_out)
-    return tuple(int(a) for a in np.flatnonzero(wide | shifted | noisy))
+    drifting = np.zeros(len(d), dtype=bool)
+    if np.isfinite(d).any():
+        drifting = d > max(config.flag_floor, config.flag_ratio * float(np.nanmedian(d)))
+    return tuple(int(a) for a in np.flatnonzero(wide | shifted | noisy | drifting))
 
 
 def _doubts(result: CalibrationResult, config: CalibrationConfig) -> list[str]:
