@@ -1,8 +1,10 @@
 """UWB self-calibration in simulation (issue 15, papers/000 section III-C).
 
 For each robot, a calibration run: the robot rolls under its scripted gait for two
-minutes (driven by the truth, so that no estimator is involved), with the
-description's packet loss; the calibrator gets the run's uncorrected ranges and the
+minutes from one reset (driven by the truth, so that no estimator is involved), with
+the description's packet loss; and beside it the run ``gym.make`` makes for
+``calibration="estimated"`` in the same world (legs from resets spread over the
+floor, :mod:`agents.calibration_run`); the calibrator gets the run's uncorrected ranges and the
 robot description, no anchor position. Figures: the anchors' RMS error after the best
 rigid motion onto the truth (proper: a mirror image does not align), the robot-anchor
 and robot-robot offsets' RMS errors, the calibration's wall time, its verdict. And the
@@ -77,11 +79,13 @@ def _env_id(description: RobotDescription) -> str:
 
 
 def calibration_run(robot: str, seconds: float = 120.0, seed: int = 0) -> SimulatedRun:
-    """``seconds`` of the simulated ``robot`` rolling under its gait from a reset with
-    ``seed``: every UWB round it ranged, and the truth."""
+    """``seconds`` of the simulated ``robot`` rolling under its gait from one reset, in
+    the world (anchors, offsets) ``seed`` draws and from a reset with ``seed``: every
+    UWB round it ranged, and the truth."""
     d = load_robot(robot)
     steps = round(seconds / 0.1)
-    env = gym.make(_env_id(d), estimator="oracle", max_episode_steps=steps + 1)
+    env = gym.make(_env_id(d), estimator="oracle", calibration="true", world_seed=seed,
+                   max_episode_steps=steps + 1)  # fmt: skip
     inner = cast("TensegrityEnv", env.unwrapped)
     backend: Any = inner.backend
     model: UwbModel = backend.uwb
@@ -184,6 +188,26 @@ def _moved_anchors(
     }
 
 
+def _env_run(robot: str, seconds: float, seed: int) -> dict[str, Any]:
+    """The calibration run ``gym.make(..., calibration="estimated")`` makes in the
+    world ``seed`` (:func:`agents.calibration_run.calibration_samples`: legs from
+    resets spread over the floor), calibrated and scored against that world."""
+    from agents.calibration_run import calibration_samples
+
+    d = load_robot(robot)
+    env = gym.make(_env_id(d), estimator="oracle", calibration="true", world_seed=seed)
+    truth = cast("Any", env.unwrapped).backend.true_uwb
+    env.close()
+    clock = time.perf_counter()
+    samples = calibration_samples(d, world_seed=seed, seconds=seconds)
+    elapsed = time.perf_counter() - clock
+    result = calibrate_samples(samples, d, rng=np.random.default_rng(seed))
+    run = SimulatedRun(
+        d, samples, truth.anchors, truth.uwb_offsets, float("nan"), cast("Any", None), [], elapsed
+    )
+    return {"simulation_seconds": round(elapsed, 1), **_errors(result, run)}
+
+
 def _robot_rows(robot: str, seconds: float, seed: int, robustness: bool) -> dict[str, Any]:
     run = calibration_run(robot, seconds, seed)
     rng = np.random.default_rng(seed)
@@ -197,6 +221,7 @@ def _robot_rows(robot: str, seconds: float, seed: int, robustness: bool) -> dict
         "simulation_seconds": round(run.sim_seconds, 1),
         **_errors(result, run),
     }
+    row["env_calibration_run"] = _env_run(robot, seconds, seed)
     if robustness:
         spoiled = _with_outliers(run.samples, 0.1, rng)
         noisy = calibrate_samples(spoiled, run.description, rng=np.random.default_rng(seed))
