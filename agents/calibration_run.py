@@ -51,6 +51,7 @@ __all__ = [
     "cache_path",
     "calibration_samples",
     "estimated_uwb_calibration",
+    "lab_calibration",
     "load_uwb_calibration",
     "onto_layout",
 ]
@@ -83,6 +84,15 @@ def onto_layout(anchors: NDArray[np.float64], layout: NDArray[np.float64]) -> ND
     out = anchors.copy()
     out[:, :2] = ec @ turn.T + p.mean(axis=0)
     return out
+
+
+def lab_calibration(
+    samples: list[UwbRangeSample], description: RobotDescription, seed: int
+) -> CalibrationResult:
+    """The calibrator's result on ``samples``, its anchors fitted onto the lab's floor
+    plan (:func:`onto_layout`), its starts drawn from ``seed``."""
+    result = calibrate_samples(samples, description, rng=np.random.default_rng(seed))
+    return replace(result, anchors=onto_layout(result.anchors, description.anchors))
 
 
 def _spawn_radius(description: RobotDescription) -> float:
@@ -171,13 +181,12 @@ def estimated_uwb_calibration(
         time_step=time_step,
     )  # fmt: skip
     try:
-        result = calibrate_samples(samples, description, rng=np.random.default_rng(world_seed))
+        result = lab_calibration(samples, description, world_seed)
     except CalibrationError as error:
         raise ValueError(
             f"make: the UWB calibration run of {description.name!r} in world {world_seed} "
             f"did not calibrate ({error}); pass calibration='true' or a calibration file"
         ) from error
-    result = replace(result, anchors=onto_layout(result.anchors, description.anchors))
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(f".{os.getpid()}.part")
     save_calibration(partial, result, robot=description.name)
@@ -238,8 +247,7 @@ def calibrate_command(
         d = made.unwrapped.backend.description  # type: ignore[attr-defined]
         made.close()
         samples = calibration_samples(d, world_seed=world_seed, seconds=seconds)
-    result = calibrate_samples(samples, d, rng=np.random.default_rng(world_seed))
-    result = replace(result, anchors=onto_layout(result.anchors, d.anchors))
+    result = lab_calibration(samples, d, world_seed)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_calibration(out, result, robot=d.name)
     return "\n".join([f"{out}:", *result.summary()])
