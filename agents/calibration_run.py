@@ -65,7 +65,7 @@ EPISODE_SECONDS = 10.0
 it stays among the anchors instead of rolling out of their area in one long run."""
 LEG_GAP = 10.0
 """s between legs in the recorded times, so that no ranging round spans two legs."""
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 """Part of the cache key: raised whenever the calibrator or the calibration run changes
 what they make, so that no stale calibration is read."""
 CACHE_VARIABLE = "TENSEGRITY_GYM_CACHE"

@@ -26,6 +26,7 @@ from estimation.uwb_calibration import (
     load_calibration,
     rigid_alignment_rms,
     save_calibration,
+    solve,
 )
 from estimation.uwb_calibration.assemble import assemble, start_positions, with_contacts
 from estimation.uwb_calibration.problem import JointState
@@ -235,6 +236,29 @@ def test_anchor_moved_after_calibration_is_flagged(
     later, _ = uwb_run(three_bar, frames, seed=7, move=(3, 0.3 * np.array([0.6, 0.8, 0.0])))
     check = check_samples(calibrated, later, three_bar, n_samples=100)
     assert check.flagged_anchors == (3,), check.verdict
+
+
+def test_a_start_mirrored_under_the_floor_is_turned_back(
+    three_bar: RobotDescription,
+    run: tuple[list[UwbRangeSample], UwbModel],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The robot moves in a slab a few tenths of a metre thick, so a start can settle
+    on the anchors' mirror image through that slab (the high anchors under the floor,
+    at a lower cost than the truth on noisy ranges). Forced onto that mirror, the solve
+    still ends above the floor, on the truth."""
+    samples, model = run
+    solution = calibrate_samples(samples, three_bar, config=FAST, rng=np.random.default_rng(0))
+    mirror = solution.anchors.copy()
+    mirror[:, 2] = 2.0 * three_bar.initial_positions[:, 2].mean() - mirror[:, 2]
+    assert mirror[:, 2].min() < -0.3  # the mirror image is under the floor
+    start = JointState(mirror, np.full(len(solution.anchors) * 6 + 15, solution.mean_offset),
+                       solution.mean_offset, np.zeros((0, 3)))  # fmt: skip
+    monkeypatch.setattr(solve, "_grow", lambda run, _: start)
+    result = calibrate_samples(samples, three_bar, config=FAST, rng=np.random.default_rng(0))
+    assert result.anchors[:, 2].min() > 0.1, result.anchors
+    assert rigid_alignment_rms(result.anchors, model.anchors) <= 0.02
+    assert result.quality == "good", result.verdict
 
 
 def test_known_anchors_give_their_frame(

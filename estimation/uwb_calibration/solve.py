@@ -172,15 +172,41 @@ def solve_table(run: Run) -> Solved:
     first = np.unique(windows[table.a_round])[: config.n_starts]
     free = gauge_mask(table.n_anchors)
     common = _spread(run.usable, config.start_samples, run.rng)
-    best, best_cost, best_start = None, np.inf, 0
+    best, best_key, best_start = None, (True, np.inf), 0
     for k, w in enumerate(first):
         grown = _grow(run, _window_start(table, run.description, int(w), config))
-        _, state, cost = _stage(run, common, free, grown, config.loss)
-        logger.debug("start %d (window %d): cost %.4f", k, w, cost)
-        if cost < best_cost:
-            best, best_cost, best_start = state, cost, k
+        candidates = [grown]
+        if _below_floor(grown):
+            candidates.append(_reflected(grown))
+        for candidate in candidates:
+            _, state, cost = _stage(run, common, free, candidate, config.loss)
+            logger.debug("start %d (window %d): cost %.4f", k, w, cost)
+            # An anchor under the floor is impossible whatever the cost: a solution
+            # with all anchors above it is taken before any that has one below.
+            key = (_below_floor(state), cost)
+            if key < best_key:
+                best, best_key, best_start = state, key, k
     assert best is not None
     return refine(run, best, best_start)
+
+
+_FLOOR_TOLERANCE = 0.05  # m: an anchor this far below the floor is on the wrong side
+
+
+def _below_floor(state: JointState) -> bool:
+    """Whether an anchor of ``state`` lies under the floor the robot rests on."""
+    return bool(np.min(state.anchors[:, 2]) < -_FLOOR_TOLERANCE)
+
+
+def _reflected(state: JointState) -> JointState:
+    """``state`` with its anchors mirrored through the horizontal plane at the robot's
+    mean height. The robot moves in a slab a few tenths of a metre thick, so ranges
+    alone barely tell an anchor from its mirror image through that slab; a solve can
+    settle on the mirror, with the higher anchors under the floor."""
+    h = float(np.mean(state.positions[:, 2])) if len(state.positions) else 0.0
+    anchors = state.anchors.copy()
+    anchors[:, 2] = 2.0 * h - anchors[:, 2]
+    return replace(state, anchors=anchors, positions=np.zeros((0, 3)))
 
 
 def refine(
