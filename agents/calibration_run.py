@@ -34,6 +34,7 @@ from estimation.uwb_calibration import (
 )
 from hardware.recording import MemorySink, RecordingBackend
 from tensegrity_gym.envs.factory import make_env
+from tensegrity_gym.model.kinematics import yaw_kabsch
 from tensegrity_gym.model.protocols import UwbCalibration
 from tensegrity_gym.model.samples import UwbRangeSample
 from tensegrity_gym.tasks.gaits import FaceGait
@@ -77,13 +78,8 @@ def onto_layout(anchors: NDArray[np.float64], layout: NDArray[np.float64]) -> ND
     shifted in the ground plane to fit the lab's ``layout`` (A, 3) best (least squares,
     no mirror): the world frame of a lab is its floor plan's, and the plan says where
     the anchors were meant to stand."""
-    e, p = anchors[:, :2], layout[:, :2]
-    ec, pc = e - e.mean(axis=0), p - p.mean(axis=0)
-    u, _, vt = np.linalg.svd(ec.T @ pc)
-    turn = vt.T @ np.diag([1.0, np.sign(np.linalg.det(vt.T @ u.T))]) @ u.T
-    out = anchors.copy()
-    out[:, :2] = ec @ turn.T + p.mean(axis=0)
-    return out
+    R, t = yaw_kabsch(anchors, layout)
+    return np.asarray(anchors @ R.T + t)
 
 
 def lab_calibration(

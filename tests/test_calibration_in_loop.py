@@ -41,6 +41,25 @@ def test_the_lab_is_drawn_once_per_world_seed_and_kept_across_resets() -> None:
     other.close()
 
 
+def test_onto_layout_turns_and_shifts_along_the_floor_only() -> None:
+    """A floor frame's anchors (turned about z, shifted, heights off by a few cm) come
+    onto the floor plan by a turn and a shift in the ground plane: their heights above
+    the floor are kept, and a mirror image is not taken for the plan."""
+    from agents.calibration_run import onto_layout
+
+    layout = load_robot("three_bar").anchors
+    angle, shift = 2.1, np.array([0.7, -1.3, 0.0])
+    c, s = np.cos(angle), np.sin(angle)
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    heights = np.random.default_rng(0).normal(0.0, 0.03, len(layout))
+    floor_frame = layout @ turn.T + shift + np.outer(heights, [0.0, 0.0, 1.0])
+    placed = onto_layout(floor_frame, layout)
+    np.testing.assert_allclose(placed[:, :2], layout[:, :2], atol=1e-12)
+    np.testing.assert_array_equal(placed[:, 2], floor_frame[:, 2])
+    mirrored = onto_layout(floor_frame * np.array([1.0, -1.0, 1.0]), layout)
+    assert np.abs(mirrored[:, :2] - layout[:, :2]).max() > 0.5
+
+
 def test_calibration_true_hands_the_simulators_own_and_says_so() -> None:
     env = gym.make(ENV_ID, estimator="oracle", calibration="true", world_seed=2)
     _, info = env.reset(seed=0)

@@ -19,6 +19,7 @@ __all__ = [
     "rod_centres",
     "rod_quaternion_from_axis",
     "weighted_kabsch",
+    "yaw_kabsch",
 ]
 
 
@@ -85,3 +86,20 @@ def weighted_kabsch(
         S[2, 2] = -1.0
     R = U @ S @ Vt
     return R, mu_t - R @ mu_s
+
+
+def yaw_kabsch(
+    source: NDArray[np.float64], target: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """R (3, 3), t (3,) minimising sum |R source + t - target|^2 over turns about z and
+    shifts along the ground, (k, 3) point pairs: the rigid motions that keep the floor
+    (z = 0, up) where it is, as between two frames that both stand on the same floor."""
+    s, d = source[:, :2], target[:, :2]
+    mu_s, mu_d = s.mean(axis=0), d.mean(axis=0)
+    U, _, Vt = np.linalg.svd((s - mu_s).T @ (d - mu_d))
+    turn = Vt.T @ np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+    R = np.eye(3)
+    R[:2, :2] = turn
+    t = np.zeros(3)
+    t[:2] = mu_d - turn @ mu_s
+    return R, t
