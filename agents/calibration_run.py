@@ -20,9 +20,10 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
-from dataclasses import replace
+import time
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -44,17 +45,20 @@ if TYPE_CHECKING:
 
     from estimation.uwb_calibration import CalibrationFile, CalibrationResult
     from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.sim.sensors import UwbModel
 
 __all__ = [
     "CACHE_VARIABLE",
     "CACHE_VERSION",
     "CALIBRATION_SECONDS",
+    "SPAWN_SHARE",
+    "CalibrationRun",
     "cache_path",
-    "calibration_samples",
     "estimated_uwb_calibration",
     "lab_calibration",
     "load_uwb_calibration",
     "onto_layout",
+    "record_calibration_run",
 ]
 
 logger = logging.getLogger(__name__)
@@ -91,21 +95,43 @@ def lab_calibration(
     return replace(result, anchors=onto_layout(result.anchors, description.anchors))
 
 
+SPAWN_SHARE = 0.4
+"""Legs start within this share of the anchors' horizontal span of their centre, so
+that the robot passes near every side of the constellation: seen from one spot only, an
+anchor's distance trades off against its offsets (2 cm errors at 0.25 of the span on
+the 3-bar robot, 1-1.4 cm at 0.4)."""
+
+
 def _spawn_radius(description: RobotDescription) -> float:
-    """Legs start within a quarter of the anchors' horizontal span of the centre."""
     a = description.anchors
-    return 0.25 * float(np.ptp(a[:, :2], axis=0).min()) if len(a) else 0.0
+    return SPAWN_SHARE * float(np.ptp(a[:, :2], axis=0).min()) if len(a) else 0.0
 
 
-def calibration_samples(
+@dataclass(frozen=True)
+class CalibrationRun:
+    """A simulated calibration run: the ranges a lab records, and (for scoring only) the
+    world they were ranged in."""
+
+    samples: list[UwbRangeSample]
+    """Every UWB round of the run, legs one after the other on one clock (s)."""
+    frames: list[tuple[float, NDArray[np.float64]]]
+    """(t s on the samples' clock, true node positions (n, 3) m) at every control period."""
+    world: UwbModel
+    """The run's UWB sensor model: its world's true anchors and offsets, and ranges
+    again in that world (``world.sample``)."""
+    sim_seconds: float
+    """Wall time (s) the simulation took."""
+
+
+def record_calibration_run(
     description: RobotDescription,
     *,
     world_seed: int,
     seconds: float = CALIBRATION_SECONDS,
     control_period: float = 0.1,
     time_step: float = 0.001,
-) -> list[UwbRangeSample]:
-    """The UWB ranges of a calibration run in the world ``world_seed`` draws: legs of
+) -> CalibrationRun:
+    """A calibration run in the world ``world_seed`` draws: legs of
     :data:`EPISODE_SECONDS` under the robot's gait, each from a reset drawn from the
     world seed; their times one after the other, :data:`LEG_GAP` apart."""
     env = make_env(
@@ -113,11 +139,13 @@ def calibration_samples(
         spawn_radius=_spawn_radius(description), control_period=control_period,
         time_step=time_step,
     )  # fmt: skip
+    world = cast("Any", env.backend).uwb
     sink = MemorySink()
     env.backend = RecordingBackend(env.backend, sink)
     rng = np.random.default_rng(world_seed)
     legs = max(1, round(seconds / EPISODE_SECONDS))
     steps = round(min(seconds, EPISODE_SECONDS) / control_period)
+    clock = time.perf_counter()
     try:
         for _ in range(legs):
             obs, _ = env.reset(seed=int(rng.integers(2**31)))
@@ -128,12 +156,16 @@ def calibration_samples(
                     break
     finally:
         env.close()
+    elapsed = time.perf_counter() - clock
     samples: list[UwbRangeSample] = []
+    frames: list[tuple[float, NDArray[np.float64]]] = []
     for k, run in enumerate(sink.runs):
         shift = k * (EPISODE_SECONDS + LEG_GAP)
         for step in [run.start, *run.steps]:
             samples += [_shifted(s, shift) for s in step.samples if isinstance(s, UwbRangeSample)]
-    return samples
+            if step.truth is not None:
+                frames.append((step.truth.t + shift, step.truth.node_positions.copy()))
+    return CalibrationRun(samples, frames, world, elapsed)
 
 
 def _shifted(s: UwbRangeSample, shift: float) -> UwbRangeSample:
@@ -162,7 +194,7 @@ def estimated_uwb_calibration(
     time_step: float = 0.001,
 ) -> UwbCalibration:
     """The anchors and offsets calibrated from a calibration run in the world
-    ``world_seed`` (:func:`calibration_samples`), from the cache where it is there."""
+    ``world_seed`` (:func:`record_calibration_run`), from the cache where it is there."""
     path = cache_path(description, world_seed, seconds)
     if path.is_file():
         try:
@@ -172,10 +204,10 @@ def estimated_uwb_calibration(
     logger.info(
         "calibrating UWB for %s, world %d (%g s run)", description.name, world_seed, seconds
     )
-    samples = calibration_samples(
+    samples = record_calibration_run(
         description, world_seed=world_seed, seconds=seconds, control_period=control_period,
         time_step=time_step,
-    )  # fmt: skip
+    ).samples  # fmt: skip
     try:
         result = lab_calibration(samples, description, world_seed)
     except CalibrationError as error:
@@ -242,7 +274,7 @@ def calibrate_command(
         made = gym.make(env_id, estimator="oracle", calibration="true", world_seed=world_seed)
         d = made.unwrapped.backend.description  # type: ignore[attr-defined]
         made.close()
-        samples = calibration_samples(d, world_seed=world_seed, seconds=seconds)
+        samples = record_calibration_run(d, world_seed=world_seed, seconds=seconds).samples
     result = lab_calibration(samples, d, world_seed)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_calibration(out, result, robot=d.name)
