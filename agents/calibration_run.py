@@ -210,11 +210,16 @@ def estimated_uwb_calibration(
     ).samples  # fmt: skip
     try:
         result = lab_calibration(samples, description, world_seed)
+        if result.quality == "failed":
+            raise CalibrationError(result.verdict)
     except CalibrationError as error:
         raise ValueError(
             f"make: the UWB calibration run of {description.name!r} in world {world_seed} "
             f"did not calibrate ({error}); pass calibration='true' or a calibration file"
         ) from error
+    if result.quality != "good":
+        logger.warning("UWB calibration of %s, world %d: %s", description.name, world_seed,
+                       result.verdict)  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(f".{os.getpid()}.part")
     save_calibration(partial, result, robot=description.name)

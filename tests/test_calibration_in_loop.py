@@ -220,3 +220,29 @@ def test_calibrate_writes_a_file_and_refuses_a_bag_without_enough_ranges(
     from estimation.uwb_calibration import load_calibration
 
     assert load_calibration(out).anchors.shape == (8, 3)
+
+
+def test_a_failed_calibration_is_refused_and_not_cached(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A calibration whose verdict is "failed" is never handed to an estimator: make
+    says why in one line, and nothing is cached to be read next time."""
+    from types import SimpleNamespace
+
+    import agents.calibration_run as calibration_run
+
+    monkeypatch.setenv(calibration_run.CACHE_VARIABLE, str(tmp_path))
+    verdict = "failed: residual spread 400 mm (ranges and geometry disagree)"
+    monkeypatch.setattr(
+        calibration_run, "record_calibration_run", lambda *a, **k: SimpleNamespace(samples=[])
+    )
+    monkeypatch.setattr(
+        calibration_run,
+        "lab_calibration",
+        lambda *a: SimpleNamespace(quality="failed", verdict=verdict),
+    )
+    d = load_robot("three_bar")
+    with pytest.raises(ValueError, match=r"did not calibrate \(failed: residual spread") as e:
+        calibration_run.estimated_uwb_calibration(d, world_seed=5)
+    assert "\n" not in str(e.value)
+    assert not list(tmp_path.rglob("*.yaml"))
