@@ -8,6 +8,7 @@ import logging
 import signal
 import sys
 from pathlib import Path
+from typing import Any
 
 __all__ = ["main"]
 
@@ -237,6 +238,18 @@ def _calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _identify(args: argparse.Namespace) -> int:
+    from agents.identify_report import identify_command
+
+    result = identify_command(
+        args.bag, Path(args.out), params=[p for p in args.params.split(",") if p],
+        robot=args.robot, model=args.model, segment_seconds=args.segment_seconds,
+        max_evaluations=args.max_evaluations, workers=args.workers, seed=args.seed,
+    )  # fmt: skip
+    sys.stdout.write(result + "\n")
+    return 0
+
+
 def _emulate(args: argparse.Namespace) -> int:
     from hardware.link.emulator import run_from_args
 
@@ -405,6 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--out", required=True, help="the calibration file to write (YAML)")
     cal.set_defaults(func=_calibrate)
 
+    _add_identify(sub)
+
     from hardware.link.emulator import add_arguments
 
     emu = sub.add_parser(
@@ -413,6 +428,32 @@ def build_parser() -> argparse.ArgumentParser:
     add_arguments(emu)
     emu.set_defaults(func=_emulate)
     return parser
+
+
+def _add_identify(sub: Any) -> None:
+    from agents.identify import MODELS, PARAMETERS
+
+    ide = sub.add_parser(
+        "identify",
+        help="fit a robot's physical parameters to a recorded run (multiple shooting, CMA-ES)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    ide.add_argument("bag", help="a bag with commands, encoders and a trajectory")
+    ide.add_argument("--out", required=True, help="the fitted robot description to write (YAML)")
+    ide.add_argument(
+        "--params", default="stiffness,damping,rest,friction,mass,motor",
+        help=f"comma-separated parameter groups, of {', '.join(sorted(PARAMETERS))}",
+    )  # fmt: skip
+    ide.add_argument("--robot", default=None, help="start from this preset or YAML, not the bag's")
+    ide.add_argument("--model", choices=sorted(MODELS), default="sim",
+                     help="the simulator's physics, or the UKF's spring-mass model")  # fmt: skip
+    ide.add_argument("--segment-seconds", type=float, default=2.0, help="length of a segment")
+    ide.add_argument("--max-evaluations", type=_positive_int, default=400,
+                     help="candidates CMA-ES may try")  # fmt: skip
+    ide.add_argument("--workers", type=_positive_int, default=None,
+                     help="processes (default: one per core)")  # fmt: skip
+    ide.add_argument("--seed", type=int, default=0, help="seeds CMA-ES")
+    ide.set_defaults(func=_identify)
 
 
 def main(argv: list[str] | None = None) -> int:
