@@ -12,7 +12,7 @@ import scipy.stats
 
 from agents.calibration_run import estimated_uwb_calibration
 from agents.runs import record_run
-from estimation.ukf import SpringMassModel, UkfEstimator
+from estimation.ukf import SpringMassModel, UkfConfig, UkfEstimator
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.kinematics import yaw_kabsch
 
@@ -127,3 +127,36 @@ def test_consistency_on_a_quiet_trajectory(calibration: str) -> None:
     low, high = scipy.stats.chi2.ppf([0.025, 0.975], dof) / dof
     assert low < float(np.mean(nees)) < high, (low, float(np.mean(nees)), high)
     assert 0.3 < float(np.mean(nis)) < 2.0
+
+
+def test_process_noise_per_node_and_on_the_ground() -> None:
+    """``node_noise_scale`` and ``contact_noise_scale`` scale Q's variances per node; the
+    defaults leave Q as the two noise levels alone; a wrong count is refused by name."""
+
+    def hold(env, obs, step):  # type: ignore[no-untyped-def]
+        d = env.backend.description
+        return env.targets_to_action(d.rest_lengths[d.actuated])
+
+    run = record_run("tensegrity_gym/ThreeBarRoll-v0", hold, 3, calibration="true")
+    d, n = run.description, run.description.n_nodes
+
+    def first_q(config: UkfConfig) -> np.ndarray:
+        est = UkfEstimator(config)
+        est.reset(d, run.calibration, run.start.samples, run.start.command, RNG)
+        step = est.prepare(run.steps[0].samples, run.steps[0].command)
+        return step.process_noise[: 3 * n].reshape(n, 3)[:, 0] / step.duration
+
+    plain = first_q(UkfConfig())
+    L = d.characteristic_length
+    np.testing.assert_allclose(plain, (UkfConfig().position_noise * L) ** 2)
+    scales = (1.0, 2.0, 1.0, 1.0, 3.0, 1.0)
+    np.testing.assert_allclose(first_q(UkfConfig(node_noise_scale=scales)),
+                               plain * np.square(scales))  # fmt: skip
+    on_ground = first_q(UkfConfig(contact_noise_scale=2.0)) / plain
+    resting = run.start.truth.node_positions[:, 2] < d.node_radii + 0.01  # type: ignore[union-attr]
+    assert resting.sum() == 3  # a prism rests on one triangle
+    np.testing.assert_allclose(on_ground, np.where(resting, 4.0, 1.0))
+    with pytest.raises(ValueError, match="node_noise_scale has 2 factors; three_bar has 6 nodes"):
+        first_q(UkfConfig(node_noise_scale=(1.0, 2.0)))
+    with pytest.raises(ValueError, match="node_noise_scale must be positive"):
+        UkfConfig(node_noise_scale=(1.0, 0.0, 1.0, 1.0, 1.0, 1.0))

@@ -26,6 +26,16 @@ class UkfConfig:
     """Process noise on node positions: std per sqrt(s), in rod lengths."""
     velocity_noise: float = 0.5
     """Process noise on node velocities: std per sqrt(s), in rod lengths per s."""
+    node_noise_scale: tuple[float, ...] | None = None
+    """Per node (n,), a factor on both process noises: where the model is known to be
+    rougher (an endcap carrying a payload, a worn cable's ends). None: 1 for every node."""
+    contact_noise_scale: float = 1.0
+    """A factor on both process noises of a node touching the ground (its estimated
+    height within ``contact_band`` of its endcap radius): the model's ground contact and
+    friction are approximate (a real floor's compliance and friction vary)."""
+    contact_band: float = 0.01
+    """How far (m) above its resting height a node still counts as touching the ground,
+    for ``contact_noise_scale``."""
     axis_sigma: float = 0.04
     """Std of each component of an AHRS rod axis (unit vector, ~ rad)."""
     range_sigma: float = 0.03
@@ -94,7 +104,8 @@ class UkfConfig:
         positive = (
             "position_noise", "velocity_noise", "axis_sigma", "range_sigma", "cable_sigma",
             "rod_length_sigma", "contact_sigma", "initial_position_sigma", "initial_shape_sigma",
-            "initial_velocity_sigma", "range_window", "divergence_nis",
+            "initial_velocity_sigma", "range_window", "divergence_nis", "contact_noise_scale",
+            "contact_band",
             "divergence_rod_strain", "stream_failure_window", "max_prediction_time",
         )  # fmt: skip
         for name in positive:
@@ -106,6 +117,9 @@ class UkfConfig:
                 f"UkfConfig.gate_probability must lie in (0.5, 1) or be None, "
                 f"got {self.gate_probability}"
             )
+        scales = self.node_noise_scale
+        if scales is not None and not all(np.isfinite(v) and v > 0 for v in scales):
+            raise ValueError(f"UkfConfig.node_noise_scale must be positive factors, got {scales}")
         if self.divergence_window < 1 or self.lockout_updates < 1:
             raise ValueError("UkfConfig.divergence_window and lockout_updates must be at least 1")
         if not 0 < self.divergence_anchor_reject_share < 1:

@@ -55,6 +55,20 @@ if TYPE_CHECKING:
 
 __all__ = ["FilterStep", "UkfConfig", "UkfDiagnostics", "UkfEstimator"]
 
+
+def _node_noise_scale(config: UkfConfig, d: RobotDescription) -> NDArray[np.float64]:
+    """(n,) the variance factor of each node's process noise from ``node_noise_scale``;
+    refused, naming both counts, where it does not list every node."""
+    if config.node_noise_scale is None:
+        return np.ones(d.n_nodes)
+    scale = np.asarray(config.node_noise_scale, dtype=np.float64)
+    if scale.shape != (d.n_nodes,):
+        raise ValueError(
+            f"UkfConfig.node_noise_scale has {scale.size} factors; {d.name} has {d.n_nodes} nodes"
+        )
+    return np.asarray(scale**2)
+
+
 log = logging.getLogger(__name__)
 
 
@@ -244,6 +258,8 @@ class UkfEstimator:
         L = d.characteristic_length
         self._q_pos = (c.position_noise * L) ** 2
         self._q_vel = (c.velocity_noise * L) ** 2
+        self._node_q = _node_noise_scale(c, d)
+        self._contact_height = d.node_radii + c.contact_band
         rest = np.asarray(command, dtype=np.float64).copy()
         self.readings = self._readings(d, calibration, samples, rest)
         self.health = EstimatorHealth(c.health, self.readings.screen)
@@ -367,9 +383,20 @@ class UkfEstimator:
             r.rest = np.asarray(command, dtype=np.float64)
         dt_ns = max(r.t_ns - t_before, 0)
         dt = ns_to_seconds(dt_ns)
-        n = self.description.n_nodes
-        q = np.concatenate([np.full(3 * n, self._q_pos * dt), np.full(3 * n, self._q_vel * dt)])
+        scale = np.repeat(self._process_noise_scale(), 3)
+        q = np.concatenate([scale * (self._q_pos * dt), scale * (self._q_vel * dt)])
         return FilterStep(dt, rest_before, r.rest.copy(), q, self._batch(rounds), dt_ns)
+
+    def _process_noise_scale(self) -> NDArray[np.float64]:
+        """Per node (n,), the factor on its process noise variances: its own, times the
+        square of ``contact_noise_scale`` where the estimate has it on the ground."""
+        c = self.config
+        if c.contact_noise_scale == 1.0:
+            return self._node_q
+        n = self.description.n_nodes
+        heights = self.filter.x[2 : 3 * n : 3]
+        touching = heights <= self._contact_height
+        return np.asarray(self._node_q * np.where(touching, c.contact_noise_scale**2, 1.0))
 
     def apply(self, step: FilterStep, ukf: UnscentedKalmanFilter) -> UpdateResult:
         """Predict ``ukf`` over the step's duration, then update it with its batch."""
