@@ -163,7 +163,7 @@ class PlausibilityBounds:
             accel_full_scale=s.imu.accel_full_scale * full_scale,
             gyro_full_scale=s.imu.gyro_full_scale * full_scale,
             quaternion_norm_tolerance=QUATERNION_NORM_TOLERANCE,
-            rest_length_min=lo - margin,
+            rest_length_min=_shortest_readings(d, lo - margin),
             rest_length_max=hi + margin,
         )
 
@@ -253,3 +253,14 @@ class PlausibilityBounds:
                 ("encoder_out_of_range", outside.any(axis=1)),
             ],
         )
+
+
+def _shortest_readings(d: RobotDescription, lowest: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The shortest plausible encoder readings (m), (m,): ``lowest`` (the motor's range
+    less a margin), except where the motor holds a minimum tension and so reels in slack
+    below its range, down to where the endcaps touch (their radii together, less that
+    tension's stretch)."""
+    least = d.motor_min_stretch
+    pairs = d.cable_nodes[d.actuated]
+    touching = d.node_radii[pairs].sum(axis=1) - np.nan_to_num(least)
+    return np.where(np.isnan(least), lowest, touching)

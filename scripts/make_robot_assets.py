@@ -171,6 +171,8 @@ def description(
                 "max_rest_length": round(float(rest * p["max_fraction"]), 5),
                 "max_speed": p["motor_speed"],
             }
+            if p.get("min_tension") is not None:  # the motor reels in slack
+                cable["motor"]["min_tension"] = p["min_tension"]
         out_cables.append(cable)
     return {
         "name": name,
@@ -322,6 +324,9 @@ def main() -> None:
             "passive_damping": 20.0,
             "pretension": 120.0,
             "motor_speed": 0.3,
+            # papers/002 VI: "the motors are controlled to apply a minimum torque,
+            # ensuring cables remain under tension and preventing slackness".
+            "min_tension": 10.0,
             "sensors": sensors(
                 k,
                 5.0,

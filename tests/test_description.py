@@ -19,6 +19,7 @@ from tensegrity_gym.model.description import (
     load_robot,
     loads_robot,
     parse_robot,
+    robot_document,
 )
 
 if TYPE_CHECKING:
@@ -100,6 +101,29 @@ def test_rod_lengths_of_presets() -> None:
     superball = load_robot("superball")
     assert sum(c.actuated for c in superball.cables) == 12
     assert sum(not c.actuated for c in superball.cables) == 12
+
+
+def test_motor_min_tension_is_optional_and_round_trips() -> None:
+    # papers/002's 1.45 m robot keeps its cables taut by motor torque; the others' motors
+    # let their cables go slack, and their documents do not name the field.
+    large, small = load_robot("three_bar_large"), load_robot("three_bar")
+    stiffness = np.array([large.cables[int(k)].stiffness for k in large.actuated])
+    np.testing.assert_allclose(large.motor_min_stretch, 10.0 / stiffness)
+    assert np.all(np.isnan(small.motor_min_stretch))
+    assert loads_robot(dump_robot(large)) == large
+    assert all("min_tension" not in c.get("motor", {}) for c in robot_document(small)["cables"])
+
+
+def test_a_taut_motor_may_read_below_its_range() -> None:
+    # A motor that reels in slack winds the cable on below its command range; a command
+    # there, or a slack-prone motor's reading, is still one no motor could have.
+    large, small = load_robot("three_bar_large"), load_robot("three_bar")
+    for d in (large, small):
+        short = d.motor_limits[0] - 0.1
+        assert d.outside_motor_range(short) == d.n_actuated
+    assert large.outside_motor_range(large.motor_limits[0] - 0.1, reading=True) == 0
+    assert small.outside_motor_range(small.motor_limits[0] - 0.1, reading=True) == 6
+    assert large.outside_motor_range(large.motor_limits[1] + 0.1, reading=True) == 6
 
 
 def test_preset_by_name_equals_preset_by_path(tmp_path: Path) -> None:
@@ -220,6 +244,14 @@ MALFORMED = {
     "motor_without_range": (
         _motor_without_range,
         ["cables[1].motor.max_rest_length", "must exceed min_rest_length"],
+    ),
+    "motor_min_tension_negative": (
+        _set(("cables", 0, "motor", "min_tension"), -5.0),
+        ["cables[0].motor.min_tension", "positive"],
+    ),
+    "motor_min_tension_not_a_number": (
+        _set(("cables", 3, "motor", "min_tension"), "taut"),
+        ["cables[3].motor.min_tension", "number"],
     ),
     "imu_full_scale_zero": (
         _set(("sensors", "imu", "gyro_full_scale"), 0.0),

@@ -83,12 +83,13 @@ def test_contacts_from_the_shape_where_the_robot_has_no_contact_sensors(
     sensed: dict[str, Any],
 ) -> None:
     # Measured on seed 0: 16 % drift over 3.2 m, the contact set exactly the true one in
-    # a third of the steps; with contact sensors 4 %. The shape's node error (about 10 cm
-    # on this robot) is what decides which endcaps are lowest.
+    # a third of the steps; with contact sensors 4 %. Since the motors reel in slack
+    # (three_bar_large's min_tension): 21 % over 2.5 m, the exact set in 15 % of the
+    # steps. The shape's node error is what decides which endcaps are lowest.
     shaped = _gait_run(InekfEstimator(InekfConfig(contacts="shape")), 120)
-    assert shaped["path"] > 2.5
-    assert shaped["drift"][-1] < 0.25 * shaped["path"]
-    assert shaped["agree"] > 0.2
+    assert shaped["path"] > 2.2
+    assert shaped["drift"][-1] < 0.3 * shaped["path"]
+    assert shaped["agree"] > 0.1
     assert sensed["agree"] > 0.9, "with contact sensors the contacts are the sensed ones"
 
 

@@ -16,6 +16,8 @@ from estimation.inekf.shape import _chirality_values
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.kinematics import member_lengths
 
+from .test_taut_motors import slack_prone
+
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
@@ -164,12 +166,30 @@ def test_distances_that_fit_no_prism_fail(gait: Gait) -> None:
     short = reconstructor.solve(distances / 3.0, weights, frame.up, frame.contacts)
     assert not short.converged and short.why is not None and "residual" in short.why
     assert np.all(np.isnan(short.positions))
-    # Every cable 30 cm longer: most would have to be slack, which no prestressed prism is.
+    # Every cable 30 cm longer: most would have to be slack, which no prestressed prism
+    # is; on this robot, whose motors reel in slack, the actuated cables cannot be at all.
     long = reconstructor.solve(distances + 0.3, weights, frame.up, frame.contacts)
-    assert not long.converged and long.why is not None and "slack" in long.why, long.why
+    assert not long.converged and long.why is not None, long.why
     assert np.all(np.isnan(long.positions))
+    prone = ShapeReconstructor(slack_prone(description))
+    long = prone.solve(distances + 0.3, weights, frame.up, frame.contacts)
+    assert not long.converged and long.why is not None and "slack" in long.why, long.why
     nan = reconstructor.solve(np.full_like(distances, np.nan), weights, frame.up)
     assert not nan.converged and nan.why is not None and "not finite" in nan.why
+
+
+def test_cables_held_taut_are_never_taken_slack(gait: Gait) -> None:
+    # The 1.45 m robot's motors keep a minimum tension: an actuated cable's distance is its
+    # encoder reading plus a stretch, never shorter, so a fit may not leave one slack.
+    description, frames = gait
+    frame = frames[len(frames) // 2]
+    taut, prone = ShapeReconstructor(description), ShapeReconstructor(slack_prone(description))
+    distances, weights = taut.cable_distances(frame.encoders, frame.cables)
+    distances[4] += 0.15  # a4 15 cm longer than the prism lets it be
+    held = taut.solve(distances, weights, frame.up, frame.contacts)
+    freed = prone.solve(distances, weights, frame.up, frame.contacts)
+    assert freed.converged and freed.slack == (4,)  # taken as slack, the rest fit
+    assert held.slack == () and held.residual_rms > freed.residual_rms
 
 
 def test_rest_shape_and_cable_distances() -> None:

@@ -8,7 +8,9 @@ unit axis, so the rod lengths (15f) hold by construction. The unknowns (5 per fr
 are fitted by Levenberg-Marquardt (compiled with numba) to
 
 - the endcap-to-endcap distances the encoders and cable-length sensors imply (15a),
-  each one-sided past a margin: a cable may be slack, shorter than its target;
+  each one-sided past a margin: a cable may be slack, shorter than its target
+  (two-sided where the motor holds a minimum tension and so reels in any slack, as on
+  papers/002's robot: the description's ``motor.min_tension``);
 - gravity: the endcaps in contact lie at one height along ``up`` (flat ground). The
   cable distances say nothing about the structure's rotation about body z (the base
   rod can spin about its own axis); the contacts fix it. Without two contacts, one of
@@ -909,8 +911,8 @@ def _search(
             C0, U0 = wC @ reflect, wU @ reflect
         elif k == -1:
             C0, U0 = _best_spin(rest[0], rest[1], prob, 24)
-        elif sw[k] == 0.0 or not taut[k]:
-            continue
+        elif sw[k] == 0.0 or not taut[k] or slack[k] == np.inf:
+            continue  # unknown, slack already, or held taut by its motor
         else:
             keep, sw[k] = sw[k], 0.0
             C0, U0, _, it, _ = _lm(wC, wU, prob, max_it, xtol, ftol)
@@ -1050,6 +1052,10 @@ class ShapeReconstructor:
         self._debias = np.abs(self._prestretch - self._bias) > 4.0 * self._sensor_sigma
         self._signs = self._rest_signs()
         self._rest_params = self._params(self._rest)
+        # Cables whose motor keeps a minimum tension (reeling in slack): their distance is
+        # the encoder's reading plus a stretch, never shorter (two-sided residuals).
+        self._reeled = np.zeros(d.n_cables, dtype=bool)
+        self._reeled[d.actuated] = np.isfinite(d.motor_min_stretch)
 
     def _layout(self) -> None:
         """Which free rod (-1: the base rod) and end (-1 first, +1 second) each node is."""
@@ -1327,6 +1333,7 @@ class ShapeReconstructor:
         gravity = up is not None and contacts.sum() >= 2 and bool(off_axis.any())
         sw = np.sqrt(w)
         slack = np.where(w > 0.0, c.slack_sigmas / np.where(w > 0.0, sw, 1.0), np.inf)
+        slack[self._reeled] = np.inf  # a motor holding its cable taut: never slack
         fl = np.zeros(_N_FLOATS)
         fl[_SW_GRAVITY], fl[_SW_SPIN] = 1.0 / c.gravity_sigma, 1.0 / c.spin_sigma
         fl[_SW_CONSTRAINT], fl[_GROUND_TOL] = 1.0 / c.constraint_tolerance, 2.0 * c.gravity_sigma
@@ -1370,4 +1377,4 @@ class ShapeReconstructor:
         used = w > 0.0
         margin = self.config.slack_sigmas / np.sqrt(np.where(used, w, 1.0))
         short = member_lengths(positions, self.description.cable_nodes) < target - margin
-        return tuple(int(k) for k in np.flatnonzero(short & used))
+        return tuple(int(k) for k in np.flatnonzero(short & used & ~self._reeled))

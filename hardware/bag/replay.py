@@ -107,7 +107,7 @@ class ReplayBackend:
                 self._count_out_of_range("encoder", s.rest_lengths)
 
     def _count_out_of_range(self, what: str, rest_lengths: NDArray[np.float64]) -> None:
-        outside = self.description.outside_motor_range(rest_lengths)
+        outside = self.description.outside_motor_range(rest_lengths, reading=what == "encoder")
         if outside:
             self.out_of_range[what] = self.out_of_range.get(what, 0) + outside
 

@@ -349,7 +349,7 @@ class ZenohDriver:
             if isinstance(sample, EncoderSample):
                 self._encoders, self._encoders_at = sample.rest_lengths, now
                 self._encoders_out_of_range += self.description.outside_motor_range(
-                    sample.rest_lengths
+                    sample.rest_lengths, reading=True
                 )
             elif isinstance(sample, RgbdFrame):
                 self._last_frame = sample

@@ -94,6 +94,13 @@ class Motor:
     max_rest_length: float
     max_speed: float
     """Largest rate of change of the rest length (m/s)."""
+    min_tension: float | None = None
+    """N, optional in YAML: the motor keeps at least this tension on its cable, reeling in
+    any slack (papers/002's robot: "the motors are controlled to apply a minimum torque,
+    ensuring cables remain under tension"). Its rest length (what the encoder reads)
+    then never exceeds the endcap distance less ``min_tension / stiffness``, so the
+    encoders give the cable lengths (zero slack). None: the rest length follows the
+    position command and the cable may go slack."""
 
 
 @dataclass(frozen=True)
@@ -367,13 +374,30 @@ class RobotDescription:
             np.array([m.max_speed for m in motors]),
         )
 
-    def outside_motor_range(self, rest_lengths: NDArray[np.float64]) -> int:
+    @cached_property
+    def motor_min_stretch(self) -> NDArray[np.float64]:
+        """Each actuated cable's least stretch (m), (m,): its motor's ``min_tension`` over
+        the cable's stiffness; NaN where the motor lets its cable go slack."""
+        return np.array([
+            np.nan if c.motor is None or c.motor.min_tension is None
+            else c.motor.min_tension / c.stiffness
+            for c in (self.cables[int(k)] for k in self.actuated)
+        ])  # fmt: skip
+
+    def outside_motor_range(
+        self, rest_lengths: NDArray[np.float64], *, reading: bool = False
+    ) -> int:
         """How many of the actuated rest lengths (m), (m,), lie outside their motor's
-        range by more than one encoder step (a command or reading no motor could have)."""
+        range by more than one encoder step (a command or reading no motor could have).
+        An encoder ``reading`` of a motor with a ``min_tension`` may lie below its range:
+        it reels in slack wherever the endcaps come closer."""
         lo, hi, _ = self.motor_limits
         step = self.sensors.encoder.resolution
         x = np.asarray(rest_lengths, dtype=np.float64)
-        return int(np.count_nonzero((x < lo - step) | (x > hi + step)))
+        short = x < lo - step
+        if reading:
+            short &= np.isnan(self.motor_min_stretch)
+        return int(np.count_nonzero(short | (x > hi + step)))
 
     @property
     def anchors(self) -> NDArray[np.float64]:
@@ -714,7 +738,12 @@ def _rods(
 def _motor(r: _Reader, doc: Any, p: str, rest: float) -> Motor:
     """The ``motor`` of the actuated cable at path ``p``, whose range (m) must hold its
     initial rest length ``rest`` (m)."""
-    m = r.mapping(doc, f"{p}.motor", {"min_rest_length", "max_rest_length", "max_speed"})
+    m = r.mapping(
+        doc,
+        f"{p}.motor",
+        {"min_rest_length", "max_rest_length", "max_speed"},
+        frozenset({"min_tension"}),
+    )
     lo = r.number(m["min_rest_length"], f"{p}.motor.min_rest_length", positive=True)
     hi = r.number(m["max_rest_length"], f"{p}.motor.max_rest_length", positive=True)
     if hi <= lo:
@@ -724,7 +753,11 @@ def _motor(r: _Reader, doc: Any, p: str, rest: float) -> Motor:
         )
     if not lo <= rest <= hi:
         raise r.fail(f"{p}.rest_length", f"{rest} lies outside the motor's range [{lo}, {hi}]")
-    return Motor(lo, hi, r.number(m["max_speed"], f"{p}.motor.max_speed", positive=True))
+    speed = r.number(m["max_speed"], f"{p}.motor.max_speed", positive=True)
+    tension = m.get("min_tension")
+    if tension is not None:
+        tension = r.number(tension, f"{p}.motor.min_tension", positive=True)
+    return Motor(lo, hi, speed, tension)
 
 
 def _cables(r: _Reader, doc: Any, index: dict[str, int], owner: dict[int, str]) -> list[Cable]:
@@ -842,12 +875,20 @@ def robot_document(d: RobotDescription) -> dict[str, Any]:
                 "rest_length": c.rest_length,
                 "actuated": c.actuated,
             }
-            | ({} if c.motor is None else {"motor": plain(asdict(c.motor))})
+            | ({} if c.motor is None else {"motor": _motor_document(c.motor)})
             for c in d.cables
         ],
         "sensors": plain(asdict(d.sensors)),
         **({} if d.carries is None else {"carries": list(d.carries)}),
     } | _gait_sections(d)
+
+
+def _motor_document(motor: Motor) -> dict[str, Any]:
+    """A motor's YAML section; ``min_tension`` only where it has one."""
+    doc = asdict(motor)
+    if motor.min_tension is None:
+        del doc["min_tension"]
+    return doc
 
 
 def _gait_sections(d: RobotDescription) -> dict[str, Any]:

@@ -561,7 +561,7 @@ class SimBackend:
             rod_positions=np.array(pos),
             rod_quaternions=np.array(orn),
             com=center_of_mass(x, self.description.node_masses),
-            rest_lengths=np.array(world.rest_lengths),
+            rest_lengths=np.array(world.spool_lengths),  # in effect: as the encoders read
         )
 
     def render(self, width: int, height: int) -> NDArray[np.uint8]:

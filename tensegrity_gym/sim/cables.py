@@ -50,6 +50,8 @@ def cable_wrenches(
     stiffness: NDArray[np.float64],
     damping: NDArray[np.float64],
     rest: NDArray[np.float64],
+    reel: NDArray[np.float64],
+    spool: NDArray[np.float64],
     prev_len: NDArray[np.float64],
     inv_dt: float,
     n_nodes: int,
@@ -63,6 +65,14 @@ def cable_wrenches(
         cables: (k, 2) node pairs; tension K (L - L0) + c dL/dt when stretched, never
             negative, with dL/dt by a backward difference against ``prev_len`` (updated
             in place: one step of lag, far below the damping time constants).
+        rest: (k,) rest lengths (m) the motors' positions (and the passive cables) set.
+        reel: (k,) least stretch (m) of a cable whose motor holds a minimum tension (that
+            tension over the stiffness), NaN for the others: its spool pays out no
+            further than ``rest`` and reels in any slack, so its rest length is
+            min(rest, L - reel), below the motor's command range where the endcaps come
+            closer (the spool winds the cable on), and while it is short of ``rest``
+            the tension is the minimum's, with no damping (the spool turns freely).
+        spool: (k,) output, the rest lengths in effect (m): the encoders' readings.
         wrench: (r, 6) output, force then torque (N, N m), overwritten.
     """
     n_rods = poses.shape[0]
@@ -85,10 +95,18 @@ def cable_wrenches(
         length = np.sqrt(dx * dx + dy * dy + dz * dz)
         rate = (length - prev_len[k]) * inv_dt
         prev_len[k] = length
-        stretch = length - rest[k]
-        if stretch <= 0.0:
-            continue  # slack: cables only pull
-        tension = stiffness[k] * stretch + damping[k] * rate
+        least = reel[k]
+        if least == least and rest[k] > length - least:  # not NaN, and short of slack:
+            # the spool turns under the motor's minimum torque, reeling in or paying
+            # out as the endcaps move; the cable holds that tension, undamped.
+            spool[k] = length - least
+            tension = stiffness[k] * least
+        else:
+            spool[k] = rest[k]
+            stretch = length - rest[k]
+            if stretch <= 0.0:
+                continue  # slack: cables only pull
+            tension = stiffness[k] * stretch + damping[k] * rate
         if tension <= 0.0:
             continue
         q = tension / length

@@ -4,7 +4,9 @@ Rods are rigid capsules built with maximal coordinates (as floating-base multibo
 they blew up under actuation). Cables are unilateral spring-dampers whose forces are
 applied to the rods every physics step; with tension positive and the force on node i
 equal to q (x_j - x_i), damping enters as ``+c dL/dt`` in the tension. Motors slew the
-actuated cables' rest lengths toward their targets at a limited speed.
+actuated cables' rest lengths toward their targets at a limited speed; a motor with a
+``min_tension`` also reels in its cable's slack at once, so its rest length (the
+encoder's reading) never exceeds the endcap distance less that tension's stretch.
 
 The hot loop is plain Python over floats: for 9-24 cables it beats numpy, whose
 per-call overhead dominates at these sizes.
@@ -33,7 +35,11 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import CameraConfig, RobotDescription
     from tensegrity_gym.sim.terrain import Terrain
 
-__all__ = ["PhysicsWorld", "Snapshot"]
+__all__ = ["Checkpoint", "PhysicsWorld", "Snapshot"]
+
+Checkpoint = tuple[int, list[float], list[float], list[float], list[float], int]
+"""PyBullet's saved state, the rest lengths the motors set and those in effect, the
+motors' targets, the cable lengths of the damping term, the clock (ns)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,7 +109,16 @@ class PhysicsWorld:
         self._motor_lo = lo.tolist()
         self._motor_hi = hi.tolist()
         self._motor_step = speed * time_step  # m per physics step
+        # Motors that hold a minimum tension reel in slack (cable_wrenches): per cable,
+        # the least stretch (m; NaN: the cable may go slack).
+        self._reel = np.full(d.n_cables, np.nan)
+        self._reel[d.actuated] = d.motor_min_stretch
         self.rest_lengths: list[float] = d.rest_lengths.tolist()
+        """The rest lengths the motors' positions set (m), (n_cables,), and the passive
+        cables' own."""
+        self.spool_lengths: list[float] = d.rest_lengths.tolist()
+        """The rest lengths in effect (m), (n_cables,), what the encoders read: those of
+        :attr:`rest_lengths`, or shorter where a motor has reeled in slack."""
         self.targets: list[float] = [self.rest_lengths[k] for k in self._actuated]
         self._time_step_ns = round(time_step * 1e9)
         self.time_ns = 0
@@ -240,6 +255,7 @@ class PhysicsWorld:
     def set_rest_lengths(self, rest_lengths: Sequence[float] | NDArray[np.float64]) -> None:
         """Set all cables' rest lengths (m); actuated targets follow."""
         self.rest_lengths = [float(x) for x in rest_lengths]
+        self.spool_lengths = list(self.rest_lengths)
         self.targets = [self.rest_lengths[k] for k in self._actuated]
 
     def rod_states(
@@ -306,6 +322,8 @@ class PhysicsWorld:
         node_of = self._node_of_arr
         cable_nodes, stiffness, damping = self._cable_arrays
         actuated, max_step = self._actuated_arr, self._motor_step
+        reel = self._reel
+        spool = np.array(self.spool_lengths)
         n_nodes = self.description.n_nodes
         get_pose = pybullet.getBasePositionAndOrientation
         apply_force = pybullet.applyExternalForce
@@ -325,8 +343,8 @@ class PhysicsWorld:
                 poses[r, :3] = p
                 poses[r, 3:] = q
             cable_wrenches(
-                poses, half, node_of, cable_nodes, stiffness, damping, rest, prev_len,
-                inv_dt, n_nodes, wrench,
+                poses, half, node_of, cable_nodes, stiffness, damping, rest, reel,
+                spool, prev_len, inv_dt, n_nodes, wrench,
             )  # fmt: skip
             w = wrench.tolist()
             centres = poses[:, :3].tolist()
@@ -337,9 +355,9 @@ class PhysicsWorld:
             step_sim(physicsClientId=c)
             self.time_ns += self._time_step_ns
             if snapshot_steps[step]:
-                self.rest_lengths = rest.tolist()
+                self.rest_lengths, self.spool_lengths = rest.tolist(), spool.tolist()
                 snapshots.append(self.snapshot())
-        self.rest_lengths = rest.tolist()
+        self.rest_lengths, self.spool_lengths = rest.tolist(), spool.tolist()
         self._cable_lengths = prev_len.tolist()
         return snapshots
 
@@ -348,23 +366,23 @@ class PhysicsWorld:
         for _ in range(n_steps):
             pybullet.stepSimulation(physicsClientId=self.client)
 
-    def save_state(self) -> tuple[int, list[float], list[float], list[float], int]:
+    def save_state(self) -> Checkpoint:
         """An in-memory checkpoint of the bodies, motors and clock."""
         state = pybullet.saveState(physicsClientId=self.client)
         return (
             state,
             list(self.rest_lengths),
+            list(self.spool_lengths),
             list(self.targets),
             list(self._cable_lengths),
             self.time_ns,
         )
 
-    def restore_state(
-        self, checkpoint: tuple[int, list[float], list[float], list[float], int]
-    ) -> None:
-        state, rest, targets, lengths, t_ns = checkpoint
+    def restore_state(self, checkpoint: Checkpoint) -> None:
+        state, rest, spool, targets, lengths, t_ns = checkpoint
         pybullet.restoreState(state, physicsClientId=self.client)
-        self.rest_lengths, self.targets = list(rest), list(targets)
+        self.rest_lengths, self.spool_lengths = list(rest), list(spool)
+        self.targets = list(targets)
         self._cable_lengths, self.time_ns = list(lengths), t_ns
 
     @property
@@ -385,7 +403,7 @@ class PhysicsWorld:
             p = pos[r]
             nodes[a] = [p[0] - ax, p[1] - ay, p[2] - az]
             nodes[b] = [p[0] + ax, p[1] + ay, p[2] + az]
-        return Snapshot(self.time, pos, orn, lin, ang, nodes, list(self.rest_lengths))
+        return Snapshot(self.time, pos, orn, lin, ang, nodes, list(self.spool_lengths))
 
     # ------------------------------------------------------------------ rendering
 
