@@ -441,8 +441,9 @@ def _add_identify(sub: Any) -> None:
     ide.add_argument("bag", help="a bag with commands, encoders and a trajectory")
     ide.add_argument("--out", required=True, help="the fitted robot description to write (YAML)")
     ide.add_argument(
-        "--params", default="stiffness,damping,rest,friction,mass,motor",
-        help=f"comma-separated parameter groups, of {', '.join(sorted(PARAMETERS))}",
+        "--params", default="stiffness,damping,rest,friction,motor",
+        help=f"comma-separated parameter groups, of {', '.join(sorted(PARAMETERS))} (mass "
+        "only without stiffness and damping: the motion cannot tell them apart)",
     )  # fmt: skip
     ide.add_argument("--robot", default=None, help="start from this preset or YAML, not the bag's")
     ide.add_argument("--model", choices=sorted(MODELS), default="sim",

@@ -160,6 +160,12 @@ def factor_names(groups: Sequence[str], description: RobotDescription) -> list[s
         raise IdentifyError(
             f"identify: unknown parameter group {unknown[0]!r}; choose from {sorted(PARAMETERS)}"
         )
+    if "mass" in groups and ({"stiffness", "damping"} & set(groups)):
+        raise IdentifyError(
+            "identify: mass cannot be fitted with stiffness or damping: scaling the masses, "
+            "stiffnesses and dampings by one factor leaves the motion unchanged (gravity "
+            "and friction scale with the mass); weigh the rods, or fit mass alone"
+        )
     has_passive = any(not c.actuated for c in description.cables)
     names = [name for g in groups for name, _ in PARAMETERS[g]]
     return [n for n in names if has_passive or not n.startswith("passive")]

@@ -88,6 +88,8 @@ def test_a_robot_that_hardly_moves_is_one_line(stiffer: RecordedRun) -> None:
     assert "\n" not in str(e.value)
     with pytest.raises(IdentifyError, match=r"unknown parameter group 'stifness'; choose from"):
         identify_run(stiffer, ["stifness"])
+    with pytest.raises(IdentifyError, match=r"mass cannot be fitted with stiffness or damping"):
+        identify_run(stiffer, ["stiffness", "mass"])
     with pytest.raises(IdentifyError, match=r"unknown model 'mujoco'"):
         identify_run(stiffer, ["damping"], model="mujoco")
 
