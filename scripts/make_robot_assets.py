@@ -336,6 +336,9 @@ def main() -> None:
             ),
         }
     )
+    # papers/002 VI: "An IMU (VN-100) is attached at the center of the bar with red
+    # endcaps"; the other rods carry none.
+    large["sensors"]["imu"] = {**large["sensors"]["imu"], "rods": ["red"]}
     superball = {
         "rod_length": 1.5,
         "rod_radius": 0.025,

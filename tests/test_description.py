@@ -114,6 +114,16 @@ def test_motor_min_tension_is_optional_and_round_trips() -> None:
     assert all("min_tension" not in c.get("motor", {}) for c in robot_document(small)["cables"])
 
 
+def test_the_imu_rods_are_optional_and_named() -> None:
+    # papers/002's robot carries one IMU, at the centre of its red rod; the others one a rod.
+    large, small = load_robot("three_bar_large"), load_robot("three_bar")
+    assert large.imu_rods == (0,) and large.rods[0].name == "red"
+    assert small.imu_rods == (0, 1, 2) and small.sensors.imu.rods is None
+    assert robot_document(large)["sensors"]["imu"]["rods"] == ["red"]
+    assert "rods" not in robot_document(small)["sensors"]["imu"]
+    assert loads_robot(dump_robot(large)) == large
+
+
 def test_a_taut_motor_may_read_below_its_range() -> None:
     # A motor that reels in slack winds the cable on below its command range; a command
     # there, or a slack-prone motor's reading, is still one no motor could have.
@@ -253,6 +263,15 @@ MALFORMED = {
         _set(("cables", 3, "motor", "min_tension"), "taut"),
         ["cables[3].motor.min_tension", "number"],
     ),
+    "imu_on_an_unknown_rod": (
+        _set(("sensors", "imu", "rods"), ["red", "purple"]),
+        ["sensors.imu.rods[1]", "unknown name 'purple'"],
+    ),
+    "imu_rod_named_twice": (
+        _set(("sensors", "imu", "rods"), ["green", "green"]),
+        ["sensors.imu.rods[1]", "named twice"],
+    ),
+    "imu_on_no_rod": (_set(("sensors", "imu", "rods"), []), ["sensors.imu.rods", "at least 1"]),
     "imu_full_scale_zero": (
         _set(("sensors", "imu", "gyro_full_scale"), 0.0),
         ["sensors.imu.gyro_full_scale", "positive"],

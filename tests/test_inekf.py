@@ -85,12 +85,17 @@ def test_contacts_from_the_shape_where_the_robot_has_no_contact_sensors(
     # Measured on seed 0: 16 % drift over 3.2 m, the contact set exactly the true one in
     # a third of the steps; with contact sensors 4 %. Since the motors reel in slack
     # (three_bar_large's min_tension): 21 % over 2.5 m, the exact set in 15 % of the
-    # steps. The shape's node error is what decides which endcaps are lowest.
+    # steps. With one IMU (the red rod's, as papers/002's robot), no other rod's tilt:
+    # 11 % over 2.5 m, the exact set in 9 % of the steps (52 % while the shape took the
+    # three lowest endcaps of its last solve for the contacts, not the filter's); with
+    # contact sensors 7 %. The shape's node error decides which endcaps are lowest.
     shaped = _gait_run(InekfEstimator(InekfConfig(contacts="shape")), 120)
     assert shaped["path"] > 2.2
-    assert shaped["drift"][-1] < 0.3 * shaped["path"]
-    assert shaped["agree"] > 0.1
-    assert sensed["agree"] > 0.9, "with contact sensors the contacts are the sensed ones"
+    assert shaped["drift"][-1] < 0.25 * shaped["path"]
+    assert shaped["agree"] > 0.05
+    # The sensors flag endcaps within 2 mm of the ground, this test's truth within 2 cm
+    # of the lowest: they differ on a few steps of a roll (measured: 90 % the same).
+    assert sensed["agree"] > 0.85, "with contact sensors the contacts are the sensed ones"
 
 
 def test_the_shape_detector_keeps_a_contact_until_it_rises_past_leave() -> None:

@@ -1,5 +1,6 @@
-"""Motors that hold a minimum tension (papers/002's robot): the spool reels in slack, so
-the encoders read the cable lengths; without it the same gait leaves cables slack."""
+"""The 1.45 m robot as papers/002's: motors that hold a minimum tension (the spool reels
+in slack, so the encoders read the cable lengths; without it the same gait leaves
+cables slack) and one IMU, on the red rod."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ import pytest
 
 from tensegrity_gym.envs.factory import make_roll_env
 from tensegrity_gym.model.description import load_robot
-from tensegrity_gym.model.samples import EncoderSample
+from tensegrity_gym.model.samples import AhrsSample, EncoderSample, ImuSample
+from tensegrity_gym.sim.backend import SimBackend
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -88,3 +90,21 @@ def test_the_same_gait_leaves_slack_prone_cables_slack(large: RobotDescription) 
     lo, hi, _ = large.motor_limits
     step = large.sensors.encoder.resolution  # the readings are quantised
     assert np.all((readings >= lo - step) & (readings <= hi + step))
+
+
+def test_one_imu_on_the_red_rod(large: RobotDescription) -> None:
+    # papers/002 VI: "An IMU (VN-100) is attached at the center of the bar with red
+    # endcaps": its readings and its AHRS are rod 0's only, at the configured rate.
+    backend = SimBackend(large)
+    try:
+        samples = [*backend.reset(np.random.default_rng(0)).samples]
+        for _ in range(5):
+            samples += backend.step(large.rest_lengths[large.actuated]).samples
+    finally:
+        backend.close()
+    imu = [s for s in samples if isinstance(s, ImuSample)]
+    ahrs = [s for s in samples if isinstance(s, AhrsSample)]
+    assert {s.rod for s in imu} == {s.rod for s in ahrs} == {0}
+    assert len(imu) == len(ahrs) == 1 + round(0.5 * large.sensors.imu.rate)
+    # At rest, the accelerometer reads g (specific force, up).
+    assert np.linalg.norm(imu[-1].accel) == pytest.approx(large.gravity, abs=0.2)

@@ -150,6 +150,9 @@ class ImuConfig:
     Optional in YAML; 16 g, the widest range of common MEMS IMUs."""
     gyro_full_scale: float = float(np.radians(2000.0))
     """Largest angular rate the gyro reports (rad/s); optional in YAML, 2000 deg/s."""
+    rods: tuple[int, ...] | None = None
+    """The rods that carry one (indices; the YAML names them), in that order; None
+    (absent): every rod. papers/002's robot has one, on its red rod."""
 
 
 @dataclass(frozen=True)
@@ -294,6 +297,13 @@ class RobotDescription:
         of :data:`~tensegrity_gym.model.samples.SAMPLE_KINDS` (those a lab registered
         too). Not ``"ground_truth"``: motion capture is the lab's, not the robot's."""
         return frozenset(SAMPLE_KINDS if self.carries is None else self.carries)
+
+    @cached_property
+    def imu_rods(self) -> tuple[int, ...]:
+        """The rods that carry an IMU (and its AHRS), by index: the YAML's
+        ``sensors.imu.rods``, else every rod."""
+        rods = self.sensors.imu.rods
+        return tuple(range(self.n_rods)) if rods is None else rods
 
     @property
     def n_nodes(self) -> int:
@@ -488,7 +498,7 @@ def _node_pair(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tupl
     return out[0], out[1]
 
 
-def _sensors(r: _Reader, doc: Any) -> SensorSuite:
+def _sensors(r: _Reader, doc: Any, rods: list[Rod]) -> SensorSuite:
     p = "sensors"
     s = r.mapping(doc, p, {"imu", "encoder", "cable_length", "uwb", "contact", "camera"})
     imu = r.mapping(
@@ -496,7 +506,7 @@ def _sensors(r: _Reader, doc: Any) -> SensorSuite:
         f"{p}.imu",
         {"rate", "mount", "accel_noise", "gyro_noise", "accel_bias", "gyro_bias", "mag_noise",
          "magnetic_field", "ahrs_gain"},
-        frozenset({"accel_full_scale", "gyro_full_scale"}),
+        frozenset({"accel_full_scale", "gyro_full_scale", "rods"}),
     )  # fmt: skip
     if imu["mount"] != "rod_centre":
         raise r.fail(f"{p}.imu.mount", f"only 'rod_centre' is supported, got {imu['mount']!r}")
@@ -516,7 +526,10 @@ def _sensors(r: _Reader, doc: Any) -> SensorSuite:
             for key in ("accel_full_scale", "gyro_full_scale")
             if key in imu
         },
-    )
+        rods=None if imu.get("rods") is None else _names(
+            r, imu["rods"], f"{q}.rods", {rod.name: k for k, rod in enumerate(rods)}
+        ),
+    )  # fmt: skip
     enc = r.mapping(s["encoder"], f"{p}.encoder", {"rate", "resolution"})
     enc_cfg = EncoderConfig(
         rate=r.number(enc["rate"], f"{p}.encoder.rate", positive=True),
@@ -826,7 +839,7 @@ def parse_robot(doc: Any, source: str) -> RobotDescription:
         nodes=tuple(nodes),
         rods=tuple(rods),
         cables=tuple(cables),
-        sensors=_sensors(r, top["sensors"]),
+        sensors=_sensors(r, top["sensors"], rods),
         display_name=_display_name(r, top),
         hardware=r.boolean(top.get("hardware", False), "hardware"),
         gait=None if top.get("gait") is None else _gait(r, top["gait"], nodes, cables),
@@ -878,9 +891,18 @@ def robot_document(d: RobotDescription) -> dict[str, Any]:
             | ({} if c.motor is None else {"motor": _motor_document(c.motor)})
             for c in d.cables
         ],
-        "sensors": plain(asdict(d.sensors)),
+        "sensors": _imu_rods_named(d, plain(asdict(d.sensors))),
         **({} if d.carries is None else {"carries": list(d.carries)}),
     } | _gait_sections(d)
+
+
+def _imu_rods_named(d: RobotDescription, doc: dict[str, Any]) -> dict[str, Any]:
+    """The ``sensors`` section ``doc`` with the IMU's ``rods`` by name, only where not
+    every rod carries one."""
+    rods = doc["imu"].pop("rods")
+    if rods is not None:
+        doc["imu"]["rods"] = [d.rods[k].name for k in rods]
+    return doc
 
 
 def _motor_document(motor: Motor) -> dict[str, Any]:

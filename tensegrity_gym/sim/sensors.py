@@ -82,14 +82,17 @@ class SensorSchedule:
 
 
 class ImuModel:
-    """IMU at each rod's centre: accelerometer (with gravity), gyro, magnetometer, biases,
-    and the orientation an on-board AHRS (imufusion, Madgwick's) computes from them."""
+    """IMU at the centre of each rod that carries one (``description.imu_rods``):
+    accelerometer (with gravity), gyro, magnetometer, biases, and the orientation an
+    on-board AHRS (imufusion, Madgwick's) computes from them."""
 
     def __init__(self, config: ImuConfig, description: RobotDescription) -> None:
         self.config = config
         self.gravity = np.array([0.0, 0.0, -description.gravity])
         self.field = np.array(config.magnetic_field)
-        self.n_rods = description.n_rods
+        self.rods = list(description.imu_rods)
+        self._all = self.rods == list(range(description.n_rods))  # no selection to make
+        self.n_rods = len(self.rods)
         self.accel_bias = np.zeros((self.n_rods, 3))
         self.gyro_bias = np.zeros((self.n_rods, 3))
         self.ahrs: list[imufusion.Ahrs] = []
@@ -117,9 +120,9 @@ class ImuModel:
         self.gyro_bias = rng.normal(0.0, c.gyro_bias, (self.n_rods, 3))
         self.ahrs = [self._new_ahrs() for _ in range(self.n_rods)]
         self._last_t = snap.t
-        self._last_v = np.asarray(snap.rod_linear_velocities, dtype=np.float64)
+        self._last_v = self._carried(np.asarray(snap.rod_linear_velocities, dtype=np.float64))
         n = int(warmup * c.rate)
-        q = np.asarray(snap.rod_quaternions, dtype=np.float64)
+        q = self._carried(np.asarray(snap.rod_quaternions, dtype=np.float64))
         still = np.zeros((1, self.n_rods, 3))
         accel, gyro, mag = self._measure(
             q[None], still, still, rng.standard_normal((n, self.n_rods, 9))
@@ -127,6 +130,10 @@ class ImuModel:
         for k in range(n):
             for r, ahrs in enumerate(self.ahrs):
                 ahrs.update(np.degrees(gyro[k, r]), accel[k, r] / 9.81, mag[k, r])
+
+    def _carried(self, per_rod: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``per_rod`` (..., n_rods, k) reduced to the rods that carry an IMU."""
+        return per_rod if self._all else per_rod[..., self.rods, :]
 
     def _measure(
         self,
@@ -154,9 +161,9 @@ class ImuModel:
         if not snaps:
             return [], []
         t = np.array([s.t for s in snaps])
-        q = np.array([s.rod_quaternions for s in snaps], dtype=np.float64)
-        v = np.array([s.rod_linear_velocities for s in snaps], dtype=np.float64)
-        w = np.array([s.rod_angular_velocities for s in snaps], dtype=np.float64)
+        q = self._carried(np.array([s.rod_quaternions for s in snaps], dtype=np.float64))
+        v = self._carried(np.array([s.rod_linear_velocities for s in snaps], dtype=np.float64))
+        w = self._carried(np.array([s.rod_angular_velocities for s in snaps], dtype=np.float64))
         # Mean acceleration over each sample interval, as an IMU's anti-alias filter gives.
         prev_v = np.concatenate([self._last_v[None], v[:-1]])
         prev_t = np.concatenate([[self._last_t], t[:-1]])
@@ -171,13 +178,13 @@ class ImuModel:
         ahrs_out: list[AhrsSample] = []
         for k in range(len(snaps)):
             tk = float(t[k])
-            for r, ahrs in enumerate(self.ahrs):
-                imu.append(ImuSample(tk, r, accel[k, r], gyro[k, r], mag[k, r]))
+            for r, (rod, ahrs) in enumerate(zip(self.rods, self.ahrs, strict=True)):
+                imu.append(ImuSample(tk, rod, accel[k, r], gyro[k, r], mag[k, r]))
                 ahrs.update(gyro_deg[k, r], accel_g[k, r], mag[k, r])
                 wxyz = ahrs.get_quaternion()
                 ahrs_out.append(
                     AhrsSample(
-                        tk, r, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]], dtype=np.float64)
+                        tk, rod, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]], dtype=np.float64)
                     )
                 )
         return imu, ahrs_out
@@ -189,12 +196,15 @@ class EncoderModel:
     def __init__(self, config: EncoderConfig, description: RobotDescription) -> None:
         self.config = config
         self.actuated = description.actuated
+        self.offsets = np.zeros(len(self.actuated))
+        """(m,) m by which each cable is longer than its encoder reads (a randomised
+        world's zero errors; 0 in the nominal one)."""
 
     def sample(self, snaps: Sequence[Snapshot]) -> list[EncoderSample]:
         res = self.config.resolution
         out = []
         for s in snaps:
-            rest = np.asarray(s.rest_lengths)[self.actuated]
+            rest = np.asarray(s.rest_lengths)[self.actuated] - self.offsets
             if res > 0.0:
                 rest = np.round(rest / res) * res
             out.append(EncoderSample(s.t, rest))
