@@ -81,6 +81,7 @@ def _train(args: argparse.Namespace) -> int:
             n_envs=args.n_envs,
             config_file=Path(args.config) if args.config else None,
             progress_bar=not args.no_progress,
+            env_kwargs={"randomization": args.randomization} if args.randomization else None,
         )
     except KeyboardInterrupt:
         log.warning("interrupted: the model reached so far is in %s", args.out)
@@ -265,6 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from agents.evaluate import CONDITIONS, condition_names
     from agents.train import ALGORITHMS
+    from tensegrity_gym.model.randomization import RANDOMIZATIONS
     from tensegrity_gym.model.registry import ESTIMATORS
 
     demo = sub.add_parser(
@@ -294,6 +296,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--n-envs", type=_positive_int, default=None, help="workers; default: the config's"
     )
     tr.add_argument("--config", default=None, help="hyperparameter YAML (rl-zoo3 layout)")
+    tr.add_argument(
+        "--randomization", default=None, choices=sorted(RANDOMIZATIONS),
+        help="train in worlds drawn from these ranges at each reset (default: none)",
+    )  # fmt: skip
     tr.add_argument("--out", required=True)
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")
     tr.set_defaults(func=_train)

@@ -81,6 +81,9 @@ class Condition:
     about: str = ""
     calibration: str = "estimated"
     """The UWB calibration the estimator gets (``gym.make(..., calibration=)``)."""
+    randomization: str | None = None
+    """The simulated world departs from the description by these ranges
+    (``gym.make(..., randomization=)``); the estimator keeps the description."""
 
 
 CONDITIONS: dict[str, Condition] = {
@@ -98,6 +101,29 @@ CONDITIONS: dict[str, Condition] = {
         Condition("ukf_dropout", "ukf", _more_dropout, "75-90 % of UWB packets lost"),
         Condition("ukf_4_anchors", "ukf", _half_the_anchors, "4 UWB anchors instead of 8"),
         Condition("ukf_imu_noise", "ukf", _noisier_imu, "IMU noise and biases x5"),
+        Condition(
+            "ukf_mild",
+            "ukf",
+            None,
+            "the UKF in worlds drawn from the mild "
+            "randomisation (the model and the robot part ways)",
+            randomization="mild",
+        ),
+        Condition(
+            "ukf_strong",
+            "ukf",
+            None,
+            "the UKF in worlds drawn from the strong randomisation",
+            randomization="strong",
+        ),
+        Condition(
+            "oracle_strong",
+            "oracle",
+            None,
+            "ground truth in the strong randomisation's "
+            "worlds: what the policy loses to the dynamics alone",
+            randomization="strong",
+        ),
     )
 }
 
@@ -293,6 +319,7 @@ def evaluate_policy(
         robot=description,
         estimator=condition.estimator,
         calibration=condition.calibration,
+        randomization=condition.randomization,
     )
     try:
         return [run_episode(env, policy.act, seed + k) for k in range(episodes)]

@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
 __all__ = [
+    "EPISODE_INFO",
     "BagSink",
     "MemorySink",
     "RecordedRun",
@@ -48,6 +49,10 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+EPISODE_INFO = ("randomization",)
+"""Keys of a backend's reset info that describe the episode's world (a randomised
+world's draws): written into the episode's run info."""
 
 
 @dataclass
@@ -80,9 +85,11 @@ class RunSink(Protocol):
         start: RecordedStep,
         *,
         clock_origin_ns: int = 0,
+        episode_info: Mapping[str, Any] | None = None,
     ) -> None:
         """A new episode starts with these samples; ``clock_origin_ns`` is the
-        robot-clock ns of its sample time 0."""
+        robot-clock ns of its sample time 0; ``episode_info`` what the backend said of
+        this episode alone (a randomised world's draws), for the run info."""
         ...
 
     def step(self, t_command: float, step: RecordedStep) -> None:
@@ -149,6 +156,7 @@ class RecordingBackend:
             self.control_period,
             start,
             clock_origin_ns=self.clock_origin_ns,
+            episode_info={k: v for k, v in result.info.items() if k in EPISODE_INFO},
         )
         return result
 
@@ -233,6 +241,7 @@ class MemorySink:
         start: RecordedStep,
         *,
         clock_origin_ns: int = 0,
+        episode_info: Mapping[str, Any] | None = None,
     ) -> None:
         self.runs.append(RecordedRun(description, calibration, start, [], control_period))
 
@@ -281,13 +290,15 @@ class BagSink:
         start: RecordedStep,
         *,
         clock_origin_ns: int = 0,
+        episode_info: Mapping[str, Any] | None = None,
     ) -> None:
         """Opens the episode's bag, its stamps ``clock_origin_ns`` plus sample times."""
         from hardware.bag.writer import BagWriter
 
         self.end()
         path = self.folder / f"episode_{self._next:03d}"
-        info = {**self.run_info, "episode": self._next, "control_period": control_period}
+        info = {**self.run_info, **(episode_info or {}), "episode": self._next,
+                "control_period": control_period}  # fmt: skip
         self._next += 1
         self.writer = BagWriter(
             path,

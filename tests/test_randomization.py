@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
 import numpy as np
 import pytest
 
+import tensegrity_gym  # noqa: F401  (registers the envs)
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.randomization import (
     RANDOMIZATIONS,
@@ -12,6 +16,9 @@ from tensegrity_gym.model.randomization import (
     register_randomization,
     resolve_randomization,
 )
+
+if TYPE_CHECKING:
+    from pathlib import Path
 
 D = load_robot("three_bar")
 
@@ -91,3 +98,109 @@ def test_names_resolve_and_a_lab_registers_its_own() -> None:
         del RANDOMIZATIONS["lab_test"]
     with pytest.raises(TypeError, match="expected a Randomization"):
         register_randomization("bad", {"rod_mass": (1, 2)})  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------- in the simulator
+
+ENV_ID = "tensegrity_gym/ThreeBarRoll-v0"
+
+
+def _env(randomization: object, **kwargs: object) -> gym.Env[Any, Any]:
+    return gym.make(ENV_ID, estimator="oracle", calibration="true",
+                    randomization=randomization, **kwargs)  # fmt: skip
+
+
+def _rollout(env: gym.Env[Any, Any], seed: int, steps: int = 15) -> tuple[Any, list[Any]]:
+    obs, info = env.reset(seed=seed)
+    out = [obs]
+    action = np.linspace(-1.0, 1.0, 6, dtype=np.float32)
+    for k in range(steps):
+        obs, *_ = env.step(action if k % 10 < 5 else -action)
+        out.append(obs)
+    return info, out
+
+
+def test_a_randomised_world_is_drawn_at_reset_and_kept_from_the_estimators() -> None:
+    env = _env("strong")
+    info, first = _rollout(env, seed=3)
+    backend = env.unwrapped.backend  # type: ignore[attr-defined]
+    drawn = info["randomization"]
+    assert set(drawn) >= {"rod_mass", "cable_stiffness", "friction", "gravity_tilt_deg"}
+    # The simulator builds the drawn robot; the estimators get the nominal one.
+    assert backend.description == D
+    assert backend.world.description != D
+    masses = [r.mass / n.mass for r, n in zip(backend.world.description.rods, D.rods, strict=True)]
+    np.testing.assert_allclose(masses, drawn["rod_mass"], rtol=1e-4)
+    tilt = np.degrees(np.arccos(-backend.world.gravity[2] / D.gravity))
+    assert tilt == pytest.approx(drawn["gravity_tilt_deg"], abs=1e-3)
+    # Same seed, same world and episode, bit for bit; another seed, another world.
+    again = _env("strong")
+    info_again, second = _rollout(again, seed=3)
+    assert info_again["randomization"] == drawn
+    for a, b in zip(first, second, strict=True):
+        np.testing.assert_array_equal(a, b)
+    _, other = env.reset(seed=4)
+    assert other["randomization"] != drawn
+    env.close()
+    again.close()
+
+
+def test_without_randomisation_nothing_is_drawn_and_info_says_nothing() -> None:
+    plain, nominal = _env(None), _env(Randomization())
+    info, a = _rollout(plain, seed=2)
+    info_nominal, b = _rollout(nominal, seed=2)
+    assert "randomization" not in info
+    assert info_nominal["randomization"]["rod_mass"] == [1.0, 1.0, 1.0]
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)  # nominal ranges draw nothing: the same episode
+    plain.close()
+    nominal.close()
+
+
+def test_encoder_zero_errors_and_command_latency_act_on_the_motors() -> None:
+    """An actuated cable 2 % longer than its encoder reads; commands acting 50 ms late."""
+    r = Randomization(actuated_rest_offset=(0.02, 0.02), command_latency=(0.05, 0.05))
+    late, prompt = _env(r), _env(None)
+    for env in (late, prompt):
+        env.reset(seed=0)
+    inner = late.unwrapped
+    backend = inner.backend  # type: ignore[attr-defined]
+    truth = backend.ground_truth()
+    actuated = D.actuated
+    rest = D.rest_lengths[actuated]
+    np.testing.assert_allclose(truth.rest_lengths[actuated], 1.02 * rest)
+    encoders = [s for s in backend.step(rest).samples if type(s).__name__ == "EncoderSample"]
+    np.testing.assert_allclose(encoders[-1].rest_lengths, rest, atol=D.sensors.encoder.resolution)
+    # A command far from the rest lengths: the motors slew toward it for 50 ms, not 100.
+    lo = np.array([c.motor.min_rest_length for c in D.cables if c.motor is not None])
+    moved = []
+    for env in (late, prompt):
+        before = env.unwrapped.backend.ground_truth().rest_lengths[actuated]  # type: ignore[attr-defined]
+        env.step(env.unwrapped.targets_to_action(lo))  # type: ignore[attr-defined]
+        after = env.unwrapped.backend.ground_truth().rest_lengths[actuated]  # type: ignore[attr-defined]
+        moved.append(np.abs(after - before).max())
+    speed = max(c.motor.max_speed for c in D.cables if c.motor is not None)
+    assert moved[1] == pytest.approx(0.1 * speed, rel=0.02)
+    assert moved[0] == pytest.approx(0.05 * speed, rel=0.05)
+    late.close()
+    prompt.close()
+
+
+def test_randomisation_is_refused_on_a_real_robot_and_when_malformed() -> None:
+    with pytest.raises(ValueError, match=r"randomization='wild' must be None, one of"):
+        _env("wild")
+    with pytest.raises(ValueError, match=r"command_latency=\(0.0, 0.2\) must stay below"):
+        _env(Randomization(command_latency=(0.0, 0.2)))
+    with pytest.raises(ValueError, match="leave randomization at None"):
+        gym.make(ENV_ID, driver="bag:/nowhere", randomization="mild")
+
+
+def test_the_draws_go_into_the_bag(tmp_path: Path) -> None:
+    from hardware.bag.reader import BagReader
+
+    env = _env("mild", record_dir=tmp_path)
+    _, info = env.reset(seed=5)
+    env.step(env.action_space.sample())
+    env.close()
+    with BagReader(next(tmp_path.iterdir())) as reader:
+        assert reader.run_info["randomization"] == info["randomization"]

@@ -133,6 +133,19 @@ def test_a_trained_policy_loads_and_acts_on_the_env(tiny_run: Path) -> None:
     assert again[0].progress == r.progress  # the same seed, the same episode
 
 
+def test_mismatch_conditions_evaluate_in_randomised_worlds(tiny_run: Path) -> None:
+    """``oracle_strong``: the same policy and seed in a world drawn from the strong
+    randomisation moves the robot otherwise than in the nominal world."""
+    policy = load_policy(tiny_run)
+    assert CONDITIONS["ukf_strong"].randomization == "strong"
+    assert CONDITIONS["ukf_mild"].randomization == "mild"
+    [nominal] = evaluate_policy(policy, CONDITIONS["oracle"], episodes=1, seed=5)
+    [strong] = evaluate_policy(policy, CONDITIONS["oracle_strong"], episodes=1, seed=5)
+    assert np.abs(strong.true_path - nominal.true_path).max() > 1e-3
+    [again] = evaluate_policy(policy, CONDITIONS["oracle_strong"], episodes=1, seed=5)
+    np.testing.assert_array_equal(again.true_path, strong.true_path)
+
+
 def test_a_corrupted_or_foreign_model_gives_a_clear_error(tiny_run: Path, tmp_path: Path) -> None:
     broken = tmp_path / "broken"
     broken.mkdir()

@@ -160,3 +160,32 @@ def test_process_noise_per_node_and_on_the_ground() -> None:
         first_q(UkfConfig(node_noise_scale=(1.0, 2.0)))
     with pytest.raises(ValueError, match="node_noise_scale must be positive"):
         UkfConfig(node_noise_scale=(1.0, 0.0, 1.0, 1.0, 1.0, 1.0))
+
+
+def test_a_stalled_links_backlog_is_not_fused_all_at_once() -> None:
+    """A period that brings 20 s of samples at once (a link that stalled): only the UWB
+    rounds of the window before its newest sample are fused. Fusing all of them built an
+    innovation covariance over every row (tens of thousands on SUPERball)."""
+
+    def hold(env, obs, step):  # type: ignore[no-untyped-def]
+        d = env.backend.description
+        return env.targets_to_action(d.rest_lengths[d.actuated])
+
+    run = record_run("tensegrity_gym/SuperBallRoll-v0", hold, 200, calibration="true")
+    est = UkfEstimator()
+    est.reset(run.description, run.calibration, run.start.samples, run.start.command, RNG)
+    rows: list[int] = []
+    update = est.filter.update
+
+    def counting(z, *args, **kwargs):  # type: ignore[no-untyped-def]
+        rows.append(len(z))
+        return update(z, *args, **kwargs)
+
+    est.filter.update = counting  # type: ignore[method-assign]
+    backlog = [s for step in run.steps for s in step.samples]
+    estimate = est.update(backlog, run.steps[-1].command)
+    per_round = max(len(s.ranges) for s in backlog if type(s).__name__ == "UwbRangeSample")
+    assert rows[-1] <= 10 * per_round + 100  # a window's rounds, not 300 of them
+    truth = run.steps[-1].truth
+    assert truth is not None and estimate.is_finite()
+    assert np.linalg.norm(estimate.com - truth.com) < 0.1

@@ -69,7 +69,8 @@ class UkfConfig:
     initial_positions: tuple[tuple[float, float, float], ...] | None = None
     """Start from these node positions (m) instead of fitting them to the first samples."""
     range_window: float = 0.5
-    """Seconds of ranges kept for re-initialisation."""
+    """Seconds of ranges kept for re-initialisation; of a period's rounds, only those
+    this close to its newest sample are fused (after a stall, not the whole backlog)."""
     divergence_nis: float = 25.0
     """Mean NIS per accepted row over ``divergence_window`` updates that counts as
     divergence."""

@@ -157,7 +157,12 @@ class Readings:
             self._axes_before[rod] = self.latest_axes.get(rod)
             self.fresh.axes[rod] = self.latest_axes[rod] = ahrs_axis(q / np.linalg.norm(q))
         since = self.t_ns - self._window_ns
-        self.rounds = [r for r in [*self.rounds, *rounds] if r.t_ns >= since]
+        # After a stall a period brings seconds of rounds at once; the robot has moved
+        # since the older ones, and fusing them all at the period's end would stack an
+        # innovation covariance over every row (a 30 s backlog of SUPERball's: 70,000
+        # rows, a 40 GB matrix). Only the window's newest are fused, as kept.
+        rounds = [r for r in rounds if r.t_ns >= since]
+        self.rounds = [r for r in self.rounds if r.t_ns >= since] + rounds
         return rounds, bool(encoders)
 
     def take(self, rounds: list[Round], range_index: NDArray[np.intp]) -> Fresh:

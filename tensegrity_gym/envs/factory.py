@@ -11,6 +11,7 @@ from tensegrity_gym.envs.roll_env import TensegrityEnv
 from tensegrity_gym.model.checks import check_number
 from tensegrity_gym.model.description import RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
+from tensegrity_gym.model.randomization import Randomization, resolve_randomization
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
 from tensegrity_gym.sim.terrain import Terrain, terrain_builder
 
@@ -81,11 +82,13 @@ def make_backend(
     spawn_radius: float,
     terrain: str | os.PathLike[str] | Terrain = "flat",
     world_seed: int = 0,
+    randomization: Randomization | None = None,
 ) -> Backend:
     """The backend a ``driver`` names: None for PyBullet (on ``terrain``, see
     :mod:`tensegrity_gym.sim.terrain`), ``"zenoh/tcp/HOST:PORT"`` for a robot on the
     network (:class:`hardware.link.ZenohDriver`), ``"bag:PATH"`` to replay a recorded
-    bag, or a Backend object (its robot must be ``description``'s)."""
+    bag, or a Backend object (its robot must be ``description``'s). ``randomization``
+    applies to the simulator alone."""
     if driver is None:
         from tensegrity_gym.sim.backend import SimBackend
 
@@ -97,6 +100,12 @@ def make_backend(
             spawn_radius=spawn_radius,
             terrain=terrain,
             world_seed=world_seed,
+            randomization=randomization,
+        )
+    if randomization is not None:
+        raise ValueError(
+            f"make: randomization draws the simulator's world; driver={driver!r} has a real "
+            "one: leave randomization at None"
         )
     if isinstance(driver, str):
         if driver.startswith("zenoh/"):
@@ -176,6 +185,7 @@ def make_env(
     terrain: str | Path | Terrain = "flat",
     calibration: str | Path = "estimated",
     world_seed: int = 0,
+    randomization: str | Randomization | None = None,
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -209,6 +219,11 @@ def make_env(
             disk), ``"true"`` (the simulator's, for ablations) or a calibration file.
         world_seed: draws the simulated lab once for the env's life: where its anchors
             stand and every pair's UWB offset (a real lab's are constants).
+        randomization: ``None`` (the description, exactly), ``"mild"``, ``"strong"``, a
+            lab's registered name or a
+            :class:`~tensegrity_gym.model.randomization.Randomization`: each reset draws
+            the simulated robot and world from its ranges (``info["randomization"]``);
+            the estimators keep the nominal description.
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -227,6 +242,7 @@ def make_env(
         driver=driver,
     )
     check_calibration(calibration, world_seed)
+    ranges = resolve_randomization(randomization)
     # The task checks its own arguments before anything is started.
     spec.create(description, control_period, task_arguments)
     backend = make_backend(
@@ -238,6 +254,7 @@ def make_env(
         spawn_radius=spawn_radius,
         terrain=terrain,
         world_seed=world_seed,
+        randomization=ranges,
     )
     try:
         source = apply_calibration(

@@ -53,8 +53,8 @@ class Randomization:
     passive_rest_offset: Interval = (0.0, 0.0)
     """Share of its rest length added to each passive cable's."""
     actuated_rest_offset: Interval = (0.0, 0.0)
-    """Share of its rest length by which each actuated cable's spool is off the
-    encoder's reading (the motors' targets and the encoders stay nominal)."""
+    """Share of its nominal rest length by which each actuated cable is longer than its
+    encoder reads (a zero set off): the motors drive their encoders to the commands."""
     friction: Interval = (1.0, 1.0)
     """Scale of the ground's friction coefficients (lateral, rolling, spinning)."""
     restitution: Interval | None = None
@@ -92,25 +92,30 @@ class Randomization:
         if self.gravity_tilt[1] >= 0.5 * np.pi:
             raise ValueError(f"Randomization.gravity_tilt={self.gravity_tilt!r} must be < pi/2")
 
-    def _cable(self, c: Cable, u: _Uniform) -> Cable:
+    def _cable(self, c: Cable, u: _Uniform) -> tuple[Cable, float]:
+        """A cable as drawn, and its encoder's offset (m): how much longer the cable is
+        than the encoder reads (0 for a passive cable, whose own length is drawn)."""
         offset = u(self.actuated_rest_offset if c.actuated else self.passive_rest_offset)
         motor = c.motor
         if motor is not None:
             motor = replace(motor, max_speed=motor.max_speed * u(self.motor_speed))
-        return replace(
+        drawn = replace(
             c,
             stiffness=c.stiffness * u(self.cable_stiffness),
             damping=c.damping * u(self.cable_damping),
-            rest_length=c.rest_length * (1.0 + offset),
+            rest_length=c.rest_length if c.actuated else c.rest_length * (1.0 + offset),
             motor=motor,
         )
+        return drawn, offset * c.rest_length if c.actuated else 0.0
 
     def draw(self, description: RobotDescription, rng: np.random.Generator) -> WorldDraw:
         """The world of one episode: the robot the simulator builds, gravity, latency.
         Draws from ``rng`` in a fixed order, only for ranges that are not nominal."""
         u = _Uniform(rng)
         rods = tuple(replace(r, mass=r.mass * u(self.rod_mass)) for r in description.rods)
-        cables = tuple(self._cable(c, u) for c in description.cables)
+        drawn = [self._cable(c, u) for c in description.cables]
+        cables = tuple(c for c, _ in drawn)
+        encoder_offsets = np.array([offset for _, offset in drawn])
         g = description.ground
         scale = u(self.friction)
         ground = replace(
@@ -127,7 +132,8 @@ class Randomization:
             tilt, azimuth = u(self.gravity_tilt), u((0.0, 2.0 * np.pi))
             down = np.array([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth),
                              -np.cos(tilt)])  # fmt: skip
-        return WorldDraw(robot, description.gravity * down, u(self.command_latency), u.draws)
+        latency = u(self.command_latency)
+        return WorldDraw(robot, description.gravity * down, latency, encoder_offsets, u.draws)
 
 
 def _interval(value: Any, name: str) -> Interval:
@@ -198,6 +204,9 @@ class WorldDraw:
     """(3,) m/s^2, the gravity vector in the world frame (tilted on a slope)."""
     command_latency: float
     """Seconds between a command and the motors acting on it."""
+    encoder_offsets: NDArray[np.float64]
+    """(n_cables,) m by which each actuated cable is longer than its encoder reads (0 for
+    the passive ones): the motors drive their encoders to the commands."""
     n_draws: int
     """Numbers drawn from the rng."""
 
@@ -213,7 +222,8 @@ class WorldDraw:
             "cable_stiffness": [_ratio(a.stiffness, b.stiffness) for a, b in pairs],
             "cable_damping": [_ratio(a.damping, b.damping) for a, b in pairs],
             "rest_length_offset": [
-                round(_ratio(a.rest_length, b.rest_length) - 1.0, 5) for a, b in pairs
+                round(_ratio(a.rest_length + e, b.rest_length) - 1.0, 5)
+                for (a, b), e in zip(pairs, self.encoder_offsets, strict=True)
             ],
             "motor_speed": [_ratio(a.max_speed, b.max_speed) for a, b in motors],
             "friction": _ratio(r.ground.lateral_friction, n.ground.lateral_friction),

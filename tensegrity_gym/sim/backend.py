@@ -33,6 +33,7 @@ if TYPE_CHECKING:
 
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.protocols import ReadyCheck
+    from tensegrity_gym.model.randomization import Randomization, WorldDraw
     from tensegrity_gym.model.samples import Sample
     from tensegrity_gym.sim.terrain import Terrain
     from tensegrity_gym.sim.world import Snapshot
@@ -249,6 +250,10 @@ class SimBackend:
             estimators (a lab's calibration, e.g. from ``estimation.uwb_calibration``),
             or a callable making them, called at the first :meth:`reset` (a calibration
             run); None: the simulator's own (:attr:`true_calibration`, for ablations).
+        randomization: the ranges each :meth:`reset` draws this episode's robot and
+            world from (:mod:`tensegrity_gym.model.randomization`); the draws are in the
+            reset's ``info["randomization"]``. :attr:`description` stays the nominal one
+            (what the estimators get). None: the description, exactly.
     """
 
     def __init__(
@@ -264,6 +269,7 @@ class SimBackend:
         terrain: str | os.PathLike[str] | Terrain = "flat",
         world_seed: int = 0,
         uwb_calibration: UwbCalibration | Callable[[], UwbCalibration] | None = None,
+        randomization: Randomization | None = None,
     ) -> None:
         steps = control_period / time_step
         if steps < 1 or abs(steps - round(steps)) > 1e-9:
@@ -296,6 +302,17 @@ class SimBackend:
         self.uwb.draw_world(np.random.default_rng(world_seed))
         self.uwb_calibration = uwb_calibration
         self.camera_model = CameraModel(s.camera)
+        if randomization is not None and randomization.command_latency[1] >= control_period:
+            raise ValueError(
+                f"randomization.command_latency={randomization.command_latency} must stay "
+                f"below the control period ({control_period} s)"
+            )
+        self.randomization = randomization
+        self.world_draw: WorldDraw | None = None
+        """This episode's draw of the randomisation (None without one)."""
+        self._offsets = np.zeros(len(description.actuated))  # the encoders' zero errors (m)
+        self._latency_steps = 0
+        self._previous_targets: list[float] | None = None
         rates = _sensor_rates(description)
         carried = description.sample_kinds
         # Only the sensors the robot carries are sampled; of the IMU's two kinds, one
@@ -326,6 +343,7 @@ class SimBackend:
             "terrain": self.terrain_source,
             "world_seed": self.world_seed,
             "uwb_calibration": self.uwb_calibration,
+            "randomization": self.randomization,
         }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -382,8 +400,8 @@ class SimBackend:
         samples (one of each sensor, the AHRS having converged while it rested).
 
         ``ready`` is not waited on: the settling period's samples are all there is."""
-        d = self.description
         self._rng = rng
+        d = self._draw_world(rng)  # the robot as built: the description unless randomised
         positions, quats = settled_pose(d, self.time_step, self.settle_time)
         world = self.world
         # Flat ground draws nothing from the rng: episodes stay as they were without it.
@@ -394,7 +412,10 @@ class SimBackend:
         world._build()
         world.time_ns = 0
         self._truth = None
-        world.set_rest_lengths(d.rest_lengths)
+        rest = d.rest_lengths.copy()
+        rest[d.actuated] += self._offsets  # the cables the encoders' zeros leave
+        world.set_rest_lengths(rest)
+        self._previous_targets = list(world.targets)  # held until the first command acts
         yaw = float(rng.uniform(-np.pi, np.pi))
         radius = self.spawn_radius * np.sqrt(rng.uniform())
         heading = rng.uniform(-np.pi, np.pi)
@@ -424,7 +445,27 @@ class SimBackend:
             sched.reset(0.0)
         for sched in self._schedules.values():
             sched.due(0.0)  # the t = 0 samples are taken below
-        return StepResult(self._sample({name: [snap] for name in self._schedules}, rng))
+        info: dict[str, object] = {}
+        if self.world_draw is not None:
+            info["randomization"] = self.world_draw.summary(self.description)
+        return StepResult(self._sample({name: [snap] for name in self._schedules}, rng), info=info)
+
+    def _draw_world(self, rng: np.random.Generator) -> RobotDescription:
+        """This episode's robot: the description, or one drawn from the randomisation,
+        with the world and the sensor models set to it. Draws nothing without one."""
+        nominal = self.description
+        if self.randomization is None:
+            return nominal
+        draw = self.world_draw = self.randomization.draw(nominal, rng)
+        robot, s = draw.robot, draw.robot.sensors
+        self.world.reconfigure(robot, draw.gravity)
+        self.imu.config, self.imu.gravity = s.imu, draw.gravity.copy()
+        self.uwb.config = s.uwb
+        self.camera_model.config = s.camera
+        self._offsets = draw.encoder_offsets[nominal.actuated]
+        self.encoder.offsets = self._offsets
+        self._latency_steps = min(round(draw.command_latency / self.time_step), self._n_steps)
+        return robot
 
     def _rest_on(
         self, terrain: Terrain, positions: NDArray[np.float64], quaternions: NDArray[np.float64]
@@ -474,7 +515,7 @@ class SimBackend:
         flags = [False] * self._n_steps
         for k in wanted:
             flags[k] = True
-        snaps = world.advance(self._n_steps, targets.tolist(), flags)
+        snaps = self._advance(targets, flags)
         by_sensor: dict[str, list[Snapshot]] = {name: [] for name in self._schedules}
         for k, snap in zip(sorted(wanted), snaps, strict=True):
             for name in wanted[k]:
@@ -484,6 +525,19 @@ class SimBackend:
             self._diverged = True
             return StepResult((), diverged=True)
         return StepResult(self._sample(by_sensor, self._rng, last))
+
+    def _advance(self, targets: NDArray[np.float64], flags: list[bool]) -> list[Snapshot]:
+        """One period toward ``targets`` (the encoders' readings to reach, m): in a
+        randomised world the motors act on it only after the command latency (the last
+        command until then), and drive cables the encoders' zero errors leave longer."""
+        world = self.world
+        physical = (np.asarray(targets, dtype=np.float64) + self._offsets).tolist()
+        late = self._latency_steps if self._previous_targets is not None else 0
+        self._previous_targets, previous = physical, self._previous_targets
+        if late == 0 or previous is None:
+            return world.advance(self._n_steps, physical, flags)
+        first = world.advance(late, previous, flags[:late])
+        return first + world.advance(self._n_steps - late, physical, flags[late:])
 
     def _sample(
         self,

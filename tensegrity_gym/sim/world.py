@@ -93,26 +93,9 @@ class PhysicsWorld:
             tuple[NDArray[np.uint8], NDArray[np.float64]],
         ] = {}
         d = description
-        self._half = [0.5 * r.length for r in d.rods]
-        self._z_half = np.array([[0.0, 0.0, h] for h in self._half])
-        self._node_of = [(int(r.nodes[0]), int(r.nodes[1])) for r in d.rods]
-        self._half_arr = np.array(self._half)
-        self._actuated = [int(k) for k in d.actuated]
-        self._actuated_arr = np.asarray(d.actuated, dtype=np.int64)
-        self._node_of_arr = np.asarray(self._node_of, dtype=np.int64).reshape(-1, 2)
-        self._cable_arrays = (
-            np.asarray(d.cable_nodes, dtype=np.int64),
-            np.array([cable.stiffness for cable in d.cables]),
-            np.array([cable.damping for cable in d.cables]),
-        )
-        lo, hi, speed = d.motor_limits
-        self._motor_lo = lo.tolist()
-        self._motor_hi = hi.tolist()
-        self._motor_step = speed * time_step  # m per physics step
-        # Motors that hold a minimum tension reel in slack (cable_wrenches): per cable,
-        # the least stretch (m; NaN: the cable may go slack).
-        self._reel = np.full(d.n_cables, np.nan)
-        self._reel[d.actuated] = d.motor_min_stretch
+        self.gravity = np.array([0.0, 0.0, -d.gravity])
+        """(3,) m/s^2 in the world frame, set at the next :meth:`_build`."""
+        self._configure(d)
         self.rest_lengths: list[float] = d.rest_lengths.tolist()
         """The rest lengths the motors' positions set (m), (n_cables,), and the passive
         cables' own."""
@@ -129,11 +112,47 @@ class PhysicsWorld:
 
     # ------------------------------------------------------------------ construction
 
+    def _configure(self, d: RobotDescription) -> None:
+        """What the hot loop reads of the robot: rods, cables, motors."""
+        self._half = [0.5 * r.length for r in d.rods]
+        self._z_half = np.array([[0.0, 0.0, h] for h in self._half])
+        self._node_of = [(int(r.nodes[0]), int(r.nodes[1])) for r in d.rods]
+        self._half_arr = np.array(self._half)
+        self._actuated = [int(k) for k in d.actuated]
+        self._actuated_arr = np.asarray(d.actuated, dtype=np.int64)
+        self._node_of_arr = np.asarray(self._node_of, dtype=np.int64).reshape(-1, 2)
+        self._cable_arrays = (
+            np.asarray(d.cable_nodes, dtype=np.int64),
+            np.array([cable.stiffness for cable in d.cables]),
+            np.array([cable.damping for cable in d.cables]),
+        )
+        lo, hi, speed = d.motor_limits
+        self._motor_lo = lo.tolist()
+        self._motor_hi = hi.tolist()
+        self._motor_step = speed * self.time_step  # m per physics step
+        # Motors that hold a minimum tension reel in slack (cable_wrenches): per cable,
+        # the least stretch (m; NaN: the cable may go slack).
+        self._reel = np.full(d.n_cables, np.nan)
+        self._reel[d.actuated] = d.motor_min_stretch
+
+    def reconfigure(self, description: RobotDescription, gravity: NDArray[np.float64]) -> None:
+        """Build the next episode (:meth:`_build`) with another ``description`` of the
+        same robot (masses, cables, motors, ground drawn apart from the nominal one)
+        and ``gravity`` (3,) m/s^2 (tilted: a slope)."""
+        if description.n_cables != self.description.n_cables or (
+            description.n_rods != self.description.n_rods
+        ):
+            raise ValueError(f"reconfigure: {description.name} is not this world's robot")
+        self.description = description
+        self.gravity = np.asarray(gravity, dtype=np.float64).copy()
+        self._configure(description)
+
     def _build(self) -> None:
         c = self.client
         d = self.description
         pybullet.resetSimulation(physicsClientId=c)
-        pybullet.setGravity(0.0, 0.0, -d.gravity, physicsClientId=c)
+        gx, gy, gz = (float(g) for g in self.gravity)
+        pybullet.setGravity(gx, gy, gz, physicsClientId=c)
         pybullet.setTimeStep(self.time_step, physicsClientId=c)
         pybullet.setPhysicsEngineParameter(deterministicOverlappingPairs=1, physicsClientId=c)
         terrain = self.terrain
