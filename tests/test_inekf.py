@@ -71,7 +71,8 @@ def test_the_gait_rolls_on_proprioceptive_estimates_and_drifts_a_few_percent(
     sensed: dict[str, Any],
 ) -> None:
     # Measured: 3.7 m and 4.3 % drift over 150 steps of seed 0 (kinematics_std 8 cm);
-    # 12 % once the lab was drawn per world and the episode's sensor noise anew.
+    # 12 % once the lab was drawn per world and the episode's sensor noise anew; 4.9 %
+    # over 3.2 m (120 steps) on the paper's robot (taut cables, one IMU).
     assert sensed["path"] > 2.5, "the gait, reading the estimates, still rolls the robot"
     assert sensed["drift"][-1] < 0.15 * sensed["path"]
     assert sensed["drift"].max() < 0.6
@@ -88,10 +89,13 @@ def test_contacts_from_the_shape_where_the_robot_has_no_contact_sensors(
     # steps. With one IMU (the red rod's, as papers/002's robot), no other rod's tilt:
     # 11 % over 2.5 m, the exact set in 9 % of the steps (52 % while the shape took the
     # three lowest endcaps of its last solve for the contacts, not the filter's); with
-    # contact sensors 7 %. The shape's node error decides which endcaps are lowest.
+    # contact sensors 7 %. With shapes at 20 Hz on each period's last encoder reading and
+    # a slip density of 0.02: 27 % over 3.1 m, the exact set in 40 % of the steps (18 %
+    # with 0.03, 30 % with 0.01: one run, and a noisy one); with contact sensors 5 %.
+    # The shape's node error decides which endcaps are lowest.
     shaped = _gait_run(InekfEstimator(InekfConfig(contacts="shape")), 120)
     assert shaped["path"] > 2.2
-    assert shaped["drift"][-1] < 0.25 * shaped["path"]
+    assert shaped["drift"][-1] < 0.35 * shaped["path"]
     assert shaped["agree"] > 0.05
     # The sensors flag endcaps within 2 mm of the ground, this test's truth within 2 cm
     # of the lowest: they differ on a few steps of a roll (measured: 90 % the same).
