@@ -50,11 +50,14 @@ def run_benchmarks(
     bag_minutes: float = 10.0,
     link_steps: int = 300,
     soak_minutes: float = 0.0,
+    sim2real: bool = False,
 ) -> dict[str, Any]:
     """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.bench_bags`) and
     the robot link against the emulator (:mod:`agents.bench_link`, ``link_steps`` 10 Hz
     steps, and a soak of ``soak_minutes``); with ``estimation``, also the estimation
-    study and the UKF's speed against filterpy's (:mod:`agents.bench_estimation`)."""
+    study and the UKF's speed against filterpy's (:mod:`agents.bench_estimation`); with
+    ``sim2real``, the UKF in randomised worlds and system identification
+    (:mod:`agents.bench_sim2real`)."""
     results: dict[str, Any] = {
         "machine": {
             "platform": platform.platform(),
@@ -102,6 +105,11 @@ def run_benchmarks(
             "calibrator": bench_calibration(),
             "ukf_estimated_against_true": bench_calibration_in_loop(),
         }
+    if sim2real:
+        from agents.bench_sim2real import bench_identify, bench_randomized_ukf
+
+        results["sim2real"] = {"randomized_ukf": bench_randomized_ukf(),
+                               "identify": bench_identify()}  # fmt: skip
     if bag_minutes > 0:
         from agents.bench_bags import bench_bags
 

@@ -155,6 +155,7 @@ def _bench(args: argparse.Namespace) -> int:
         bag_minutes=args.bag_minutes,
         link_steps=args.link_steps,
         soak_minutes=args.soak_minutes,
+        sim2real=args.sim2real,
     )
     text = json.dumps(results, indent=2)
     if args.out:
@@ -348,6 +349,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="also run the estimation study (papers/000 on SUPERball), the UKF's "
         "speed against filterpy's, the ICP tracker's figures and papers/002's table "
         "(the invariant EKF on the 1.45 m robot, beside the UKF)",
+    )
+    bench.add_argument(
+        "--sim2real",
+        action="store_true",
+        help="also run the UKF in randomised worlds (none, mild, strong) and the "
+        "identification of a 3-bar robot recorded 30 %% off its description",
     )
     bench.add_argument(
         "--bag-minutes",
