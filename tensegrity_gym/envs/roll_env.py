@@ -13,6 +13,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from tensegrity_gym.model.checks import check_open
 from tensegrity_gym.model.protocols import backend_can_wait
 
 if TYPE_CHECKING:
@@ -82,6 +83,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         """Stop commands this env sent (:meth:`stop_backend`)."""
         self._estimate: Estimate | None = None
         self._observation: NDArray[np.float32] | None = None
+        self._closed = False
 
     # ------------------------------------------------------------------ helpers
 
@@ -135,6 +137,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[NDArray[np.float32], dict[str, Any]]:
+        check_open(self._closed, "reset")
         super().reset(seed=seed)
         try:
             return self._reset()
@@ -182,6 +185,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     def step(
         self, action: NDArray[np.float32]
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
+        check_open(self._closed, "step")
         try:
             return self._step(action)
         except BaseException:  # Ctrl-C included: a robot holds its motors first
@@ -243,4 +247,10 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         return None  # "human": PyBullet's own window shows the scene
 
     def close(self) -> None:
+        """Close the backend; later resets and steps raise ``RuntimeError`` (closing
+        again does nothing)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._estimate = self._observation = None
         self.backend.close()

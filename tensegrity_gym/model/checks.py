@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from numbers import Real
 
-__all__ = ["check_number", "check_optional_number"]
+__all__ = ["check_number", "check_open", "check_optional_number"]
 
 
 def check_number(
@@ -47,3 +47,10 @@ def check_optional_number(
     if value is None:
         return None
     return check_number(name, value, positive=positive, non_negative=non_negative, where=where)
+
+
+def check_open(closed: bool, call: str) -> None:
+    """RuntimeError naming ``call`` (``"step"``, ``"reset"``) if the env was closed: a
+    closed env has no world left, and would otherwise build a new, un-reset one."""
+    if closed:
+        raise RuntimeError(f"{call}: the env was closed; make a new one (gym.make) to run again")

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from tensegrity_gym.model.checks import check_open
 from tensegrity_gym.model.kinematics import center_of_mass
 from tensegrity_gym.model.lie import quat_multiply, quat_rotate
 from tensegrity_gym.model.protocols import SensorCalibration, StepResult, UwbCalibration
@@ -328,6 +329,7 @@ class SimBackend:
         self._calibration: SensorCalibration | None = None
         self._diverged = False
         self._truth: GroundTruth | None = None
+        self._closed = False
 
     # Pickling ships the configuration, not the PyBullet client: a new one is made on
     # the other side (each process owns its client).
@@ -352,7 +354,9 @@ class SimBackend:
 
     @property
     def world(self) -> PhysicsWorld:
+        """The PyBullet world, built on first use; RuntimeError once :meth:`close` ran."""
         if self._world is None:
+            check_open(self._closed, "the simulation")
             self._world = PhysicsWorld(self.description, self.time_step, gui=self.gui)
         return self._world
 
@@ -400,6 +404,7 @@ class SimBackend:
         samples (one of each sensor, the AHRS having converged while it rested).
 
         ``ready`` is not waited on: the settling period's samples are all there is."""
+        check_open(self._closed, "reset")
         self._rng = rng
         d = self._draw_world(rng)  # the robot as built: the description unless randomised
         positions, quats = settled_pose(d, self.time_step, self.settle_time)
@@ -500,6 +505,7 @@ class SimBackend:
         return self.camera and self._carries_camera
 
     def step(self, targets: NDArray[np.float64]) -> StepResult:
+        check_open(self._closed, "step")
         if self._rng is None:
             raise RuntimeError("call reset() before step()")
         if self._diverged:
@@ -650,6 +656,8 @@ class SimBackend:
         """Nothing to hold: the simulated motors follow the last targets."""
 
     def close(self) -> None:
+        """Drop the PyBullet world; later resets and steps raise (closing again is harmless)."""
+        self._closed = True
         if self._world is not None:
             self._world.close()
             self._world = None
