@@ -141,11 +141,16 @@ class RecordingBackend:
         """When the next command is sent (s): the end of the latest period."""
         return ns_to_seconds(self._t_ns)
 
-    def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
+    def reset(
+        self, rng: np.random.Generator, *, ready: ReadyCheck | None = None, **options: Any
+    ) -> StepResult:
+        """Reset the wrapped backend, with ``options`` (its ``reset_options``), and begin
+        an episode in the sink."""
+        reset: Any = self.inner.reset  # options only where the wrapped one takes them
         if ready is not None and backend_can_wait(self.inner):
-            result = self.inner.reset(rng, ready=ready)
+            result: StepResult = reset(rng, ready=ready, **options)
         else:
-            result = self.inner.reset(rng)
+            result = reset(rng, **options)
         truth = self.inner.ground_truth()
         times = [s.t for s in result.samples] + ([truth.t] if truth is not None else [])
         self._t_ns = seconds_to_ns(max(times, default=0.0))

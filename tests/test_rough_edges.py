@@ -43,3 +43,95 @@ def test_a_closed_backend_builds_no_new_world() -> None:
     with pytest.raises(RuntimeError, match="the env was closed"):
         _ = backend.world
     env.close()
+
+
+def _rollout(env: gym.Env, seed: int, options: dict | None, steps: int = 5) -> list[np.ndarray]:
+    obs, _ = env.reset(seed=seed, options=options)
+    out = [obs]
+    rng = np.random.default_rng(seed)
+    for _ in range(steps):
+        out.append(env.step(rng.uniform(-1.0, 1.0, env.action_space.shape))[0])
+    return out
+
+
+def test_reset_without_options_is_unchanged(three_bar_env) -> None:
+    plain = _rollout(three_bar_env, 3, None)
+    empty = _rollout(three_bar_env, 3, {})
+    assert all(np.array_equal(a, b) for a, b in zip(plain, empty, strict=True))
+
+
+def test_reset_options_set_the_goal_for_that_episode_only(three_bar_env) -> None:
+    env = three_bar_env
+    obs, _ = env.reset(seed=0, options={"goal_heading": 0.5, "goal_distance": 0.2})
+    task = env.unwrapped.task
+    np.testing.assert_allclose(obs[-2:], [np.cos(0.5), np.sin(0.5)], rtol=1e-6)
+    assert task.episode_goal_distance == 0.2
+    obs, _ = env.reset(seed=0)
+    assert task.heading == task.goal_heading and task.episode_goal_distance == task.goal_distance
+    np.testing.assert_allclose(obs[-2:], [np.cos(task.heading), np.sin(task.heading)], rtol=1e-6)
+
+
+def test_reset_option_goal_distance_ends_the_episode(three_bar_env) -> None:
+    env = three_bar_env
+    env.reset(seed=0, options={"goal_distance": 1e-9})
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        _, _, terminated, _, info = env.step(rng.uniform(-1.0, 1.0, env.action_space.shape))
+        assert terminated == (info["progress"] >= 1e-9)
+        if terminated:
+            break
+    assert terminated
+
+
+def test_reset_option_spawn_places_the_robot(three_bar_env) -> None:
+    env = three_bar_env
+    _, info = env.reset(seed=1, options={"spawn": {"x": 2.0, "y": -1.0, "yaw": 0.0}})
+    np.testing.assert_allclose(info["com_true"][:2], [2.0, -1.0], atol=1e-3)
+    nodes = env.unwrapped.backend.ground_truth().node_positions - info["com_true"]
+    _, info = env.reset(seed=1, options={"spawn": {"x": 2.0, "y": -1.0, "yaw": np.pi / 2}})
+    turned = env.unwrapped.backend.ground_truth().node_positions - info["com_true"]
+    # a quarter turn about z: (x, y) -> (-y, x)
+    np.testing.assert_allclose(turned[:, :2], np.stack([-nodes[:, 1], nodes[:, 0]], 1), atol=1e-3)
+
+
+def test_reset_option_spawn_passes_through_a_recording(tmp_path) -> None:
+    env = gym.make(ROLL, record_dir=str(tmp_path))
+    _, info = env.reset(seed=0, options={"spawn": {"x": -1.5}})
+    assert abs(info["com_true"][0] + 1.5) < 1e-3
+    env.close()
+
+
+def test_reset_option_goal_of_goto() -> None:
+    env = gym.make("tensegrity_gym/ThreeBarGoTo-v0")
+    _, info = env.reset(seed=0, options={"goal": (1.0, 2.0)})
+    np.testing.assert_array_equal(info["goal"], [1.0, 2.0])
+    with pytest.raises(ValueError, match=r"unknown options \['goal_heading'\]; valid: \['goal', "):
+        env.reset(seed=0, options={"goal_heading": 0.0})
+    with pytest.raises(ValueError, match=r"reset: goal=3.0 must be a point"):
+        env.reset(seed=0, options={"goal": 3.0})
+    env.close()
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (
+            {"foo": 1},
+            r"reset: unknown options \['foo'\]; valid: "
+            r"\['goal_distance', 'goal_heading', 'spawn'\]",
+        ),
+        (
+            {"spawn": {"z": 1.0}},
+            r"reset: spawn has unknown keys \['z'\]; valid: \['x', 'y', 'yaw'\]",
+        ),
+        ({"spawn": {"x": float("nan")}}, r"reset: spawn\['x'\]=nan"),
+        ({"spawn": 2.0}, r"reset: spawn=2.0 must be a dict"),
+        ({"goal_distance": -1.0}, r"reset: goal_distance=-1.0"),
+        ({"goal_heading": "north"}, r"reset: goal_heading='north'"),
+        ("spawn", r"reset: options must be a dict, got str"),
+    ],
+)
+def test_reset_refuses_bad_options(three_bar_env, options, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        three_bar_env.reset(seed=0, options=options)
+    three_bar_env.reset(seed=0)  # and the env goes on

@@ -138,18 +138,42 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[NDArray[np.float32], dict[str, Any]]:
         check_open(self._closed, "reset")
+        task_options, backend_options = self._split_options(options)
         super().reset(seed=seed)
         try:
-            return self._reset()
+            return self._reset(task_options, backend_options)
         except BaseException:
             self.stop_backend()
             raise
 
-    def _reset(self) -> tuple[NDArray[np.float32], dict[str, Any]]:
+    def reset_options(self) -> list[str]:
+        """The keys ``reset(options=...)`` takes: the task's (e.g. Roll's ``goal_heading``,
+        ``goal_distance``) and the backend's (the simulator's ``spawn``)."""
+        keys = getattr(self.task, "reset_options", ()), getattr(self.backend, "reset_options", ())
+        return sorted({str(k) for group in keys for k in group})
+
+    def _split_options(self, options: object) -> tuple[dict[str, Any], dict[str, Any]]:
+        """``reset``'s options as the task's and the backend's; ValueError naming the
+        keys neither takes, with the valid ones."""
+        if options is None:
+            return {}, {}
+        if not isinstance(options, dict):
+            raise ValueError(f"reset: options must be a dict, got {type(options).__name__}")
+        valid = self.reset_options()
+        unknown = sorted(str(k) for k in options if k not in valid)
+        if unknown:
+            raise ValueError(f"reset: unknown options {unknown}; valid: {valid}")
+        task_keys = getattr(self.task, "reset_options", ())
+        task = {k: v for k, v in options.items() if k in task_keys}
+        return task, {k: v for k, v in options.items() if k not in task_keys}
+
+    def _reset(
+        self, task_options: dict[str, Any], backend_options: dict[str, Any]
+    ) -> tuple[NDArray[np.float32], dict[str, Any]]:
         # Until this reset succeeds there is no episode: a step must not command the robot
         # from the previous one's state.
         self._estimate = self._observation = None
-        start = self._reset_backend()
+        start = self._reset_backend(backend_options)
         d = self.backend.description
         command = d.rest_lengths[d.actuated].copy()  # the motors hold their initial lengths
         estimate = self.estimator.reset(
@@ -159,7 +183,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             command,
             self.np_random,
         )
-        self.task.reset(estimate, self.np_random)
+        task_reset: Any = self.task.reset  # a task without options takes none
+        task_reset(estimate, self.np_random, **task_options)
         self._estimate = estimate
         self._observation = self.task.observation(estimate)
         if self.render_mode == "human":
@@ -168,19 +193,20 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         info.update(start.info)
         return self._observation, info
 
-    def _reset_backend(self) -> StepResult:
-        """Reset the backend; one that can wait (a robot) waits until the estimator has
-        what it needs to initialise."""
+    def _reset_backend(self, options: dict[str, Any]) -> StepResult:
+        """Reset the backend with ``options`` (its :attr:`reset_options`); one that can
+        wait (a robot) waits until the estimator has what it needs to initialise."""
         check = getattr(self.estimator, "initialisation_missing", None)
+        reset: Any = self.backend.reset  # a backend without options takes none
         if check is None or not self._backend_waits:
-            return self.backend.reset(self.np_random)
+            return reset(self.np_random, **options)  # type: ignore[no-any-return]
         d = self.backend.description
 
         def ready(samples: Sequence[Sample]) -> str | None:
             missing: str | None = check(d, self.backend.calibration, samples)
             return missing
 
-        return self.backend.reset(self.np_random, ready=ready)
+        return reset(self.np_random, ready=ready, **options)  # type: ignore[no-any-return]
 
     def step(
         self, action: NDArray[np.float32]

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import itertools
+from collections.abc import Mapping
 from dataclasses import replace
 from functools import lru_cache
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tensegrity_gym.model.checks import check_open
+from tensegrity_gym.model.checks import check_number, check_open
 from tensegrity_gym.model.kinematics import center_of_mass
 from tensegrity_gym.model.lie import quat_multiply, quat_rotate
 from tensegrity_gym.model.protocols import SensorCalibration, StepResult, UwbCalibration
@@ -222,6 +223,24 @@ def _grid_segments(
     return segments, 400 if terrain is None else 40
 
 
+_SPAWN_KEYS = ("x", "y", "yaw")
+
+
+def _check_spawn(spawn: object) -> dict[str, float]:
+    """``reset(options={"spawn": ...})`` as {key: value}: keys among ``x``, ``y`` (m)
+    and ``yaw`` (rad), finite numbers; ValueError naming what is wrong."""
+    if spawn is None:
+        return {}
+    if not isinstance(spawn, Mapping):
+        raise ValueError(
+            f"reset: spawn={spawn!r} must be a dict with keys among {list(_SPAWN_KEYS)} (m, m, rad)"
+        )
+    unknown = sorted(str(k) for k in spawn if k not in _SPAWN_KEYS)
+    if unknown:
+        raise ValueError(f"reset: spawn has unknown keys {unknown}; valid: {list(_SPAWN_KEYS)}")
+    return {k: check_number(f"spawn[{k!r}]", v, where="reset") for k, v in spawn.items()}
+
+
 def _yaw_quaternion(yaw: float) -> NDArray[np.float64]:
     return np.array([0.0, 0.0, np.sin(0.5 * yaw), np.cos(0.5 * yaw)])
 
@@ -399,12 +418,24 @@ class SimBackend:
 
     # ------------------------------------------------------------------ episodes
 
-    def reset(self, rng: np.random.Generator, *, ready: ReadyCheck | None = None) -> StepResult:
+    reset_options = frozenset({"spawn"})
+    """The keys of ``env.reset(options=...)`` that :meth:`reset` takes."""
+
+    def reset(
+        self,
+        rng: np.random.Generator,
+        *,
+        ready: ReadyCheck | None = None,
+        spawn: Mapping[str, float] | None = None,
+    ) -> StepResult:
         """Place the settled robot at a random heading and position; return the first
         samples (one of each sensor, the AHRS having converged while it rested).
 
+        ``spawn`` fixes the CoM's ground position ``x``, ``y`` (m, world frame) and the
+        robot's ``yaw`` (rad), any of them; the others are drawn as without it.
         ``ready`` is not waited on: the settling period's samples are all there is."""
         check_open(self._closed, "reset")
+        pose = _check_spawn(spawn)
         self._rng = rng
         d = self._draw_world(rng)  # the robot as built: the description unless randomised
         positions, quats = settled_pose(d, self.time_step, self.settle_time)
@@ -421,10 +452,7 @@ class SimBackend:
         rest[d.actuated] += self._offsets  # the cables the encoders' zeros leave
         world.set_rest_lengths(rest)
         self._previous_targets = list(world.targets)  # held until the first command acts
-        yaw = float(rng.uniform(-np.pi, np.pi))
-        radius = self.spawn_radius * np.sqrt(rng.uniform())
-        heading = rng.uniform(-np.pi, np.pi)
-        shift = np.array([radius * np.cos(heading), radius * np.sin(heading), 0.0])
+        shift, yaw = self._spawn_pose(rng, pose)
         qz = _yaw_quaternion(yaw)
         c, s = np.cos(yaw), np.sin(yaw)
         rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
@@ -454,6 +482,19 @@ class SimBackend:
         if self.world_draw is not None:
             info["randomization"] = self.world_draw.summary(self.description)
         return StepResult(self._sample({name: [snap] for name in self._schedules}, rng), info=info)
+
+    def _spawn_pose(
+        self, rng: np.random.Generator, pose: dict[str, float]
+    ) -> tuple[NDArray[np.float64], float]:
+        """The CoM's shift from the origin (m, (3,)) and the yaw (rad) of this episode:
+        drawn from ``rng`` (always, so that the rest of the episode draws the same), then
+        set to ``pose``'s ``x``, ``y`` and ``yaw`` where it has them."""
+        yaw = float(rng.uniform(-np.pi, np.pi))
+        radius = self.spawn_radius * np.sqrt(rng.uniform())
+        heading = rng.uniform(-np.pi, np.pi)
+        shift = np.array([radius * np.cos(heading), radius * np.sin(heading), 0.0])
+        shift[0], shift[1] = pose.get("x", shift[0]), pose.get("y", shift[1])
+        return shift, pose.get("yaw", yaw)
 
     def _draw_world(self, rng: np.random.Generator) -> RobotDescription:
         """This episode's robot: the description, or one drawn from the randomisation,

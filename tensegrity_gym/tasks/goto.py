@@ -58,6 +58,14 @@ def _check_range(value: object) -> tuple[float, float]:
     return near, far
 
 
+def _check_goal(value: object) -> NDArray[np.float64]:
+    """``reset(options={"goal": ...})`` as a (2,) array (m); ValueError naming it."""
+    if not isinstance(value, (tuple, list, np.ndarray)) or len(value) != 2:
+        raise ValueError(f"reset: goal={value!r} must be a point (x, y) in metres")
+    x = check_number("goal[0]", value[0], where="reset")
+    return np.array([x, check_number("goal[1]", value[1], where="reset")])
+
+
 class GoToTask(GoalFrameTask):
     """Reward the estimated CoM's approach to a goal point; a new goal after each success.
 
@@ -122,10 +130,20 @@ class GoToTask(GoalFrameTask):
         self.goal = centre[:2] + distance * np.array([np.cos(heading), np.sin(heading)])
         self._initial = distance
 
-    def reset(self, estimate: Estimate, rng: np.random.Generator) -> None:
+    reset_options = frozenset({"goal"})
+    """The keys of ``env.reset(options=...)`` that :meth:`reset` takes."""
+
+    def reset(self, estimate: Estimate, rng: np.random.Generator, **options: object) -> None:
+        """Start an episode. ``options`` may set its first goal, ``goal`` (x, y) (m,
+        world frame); the goals after it are drawn as usual."""
         self._rng = rng
         self.goals_reached, self._covered = 0, 0.0
-        self._draw(estimate.com)
+        if "goal" in options:
+            self.goal = _check_goal(options["goal"])
+            initial = self.distance(estimate)  # NaN where the CoM is unknown: from the origin
+            self._initial = initial if np.isfinite(initial) else float(np.linalg.norm(self.goal))
+        else:
+            self._draw(estimate.com)
         self._direction = np.array([1.0, 0.0])
         self.frame_direction(estimate)
 

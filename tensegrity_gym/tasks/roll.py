@@ -81,13 +81,26 @@ class RollTask(GoalFrameTask):
             progress_weight=progress_weight,
             control_period=control_period,
         )
+        self.episode_goal_distance = self.goal_distance
+        """This episode's ``goal_distance`` (m; the reset's option, else the task's)."""
         self.heading = 0.0
         self.direction = np.array([1.0, 0.0])
         self.start = np.zeros(3)
         self._jumped = 0.0  # m along the heading moved in implausible steps
 
-    def reset(self, estimate: Estimate, rng: np.random.Generator) -> None:
-        h = self.goal_heading
+    reset_options = frozenset({"goal_heading", "goal_distance"})
+    """The keys of ``env.reset(options=...)`` that :meth:`reset` takes."""
+
+    def reset(self, estimate: Estimate, rng: np.random.Generator, **options: object) -> None:
+        """Start an episode. ``options`` may set, for this episode only, ``goal_heading``
+        (rad, world frame; None draws one) and ``goal_distance`` (m; None: no end)."""
+        h, self.episode_goal_distance = self.goal_heading, self.goal_distance
+        if "goal_heading" in options:
+            h = check_optional_number("goal_heading", options["goal_heading"], where="reset")
+        if "goal_distance" in options:
+            self.episode_goal_distance = check_optional_number(
+                "goal_distance", options["goal_distance"], positive=True, where="reset"
+            )
         self.heading = float(rng.uniform(-np.pi, np.pi)) if h is None else float(h)
         self.direction = np.array([np.cos(self.heading), np.sin(self.heading)])
         self.start = estimate.com.copy()
@@ -123,4 +136,5 @@ class RollTask(GoalFrameTask):
         return self.progress_weight * step / self.scale - self.control_cost(action)
 
     def terminated(self, estimate: Estimate) -> bool:
-        return self.goal_distance is not None and self.progress(estimate) >= self.goal_distance
+        goal = self.episode_goal_distance
+        return goal is not None and self.progress(estimate) >= goal
