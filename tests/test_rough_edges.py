@@ -135,3 +135,25 @@ def test_reset_refuses_bad_options(three_bar_env, options, message: str) -> None
     with pytest.raises(ValueError, match=message):
         three_bar_env.reset(seed=0, options=options)
     three_bar_env.reset(seed=0)  # and the env goes on
+
+
+def test_check_env_with_its_defaults_passes_headless(monkeypatch) -> None:
+    from gymnasium.utils.env_checker import check_env
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    env = gym.make(ROLL)
+    with pytest.warns(RuntimeWarning, match=r"render_mode='human' needs a display"):
+        check_env(env.unwrapped)  # makes and renders each of metadata's modes, "human" too
+    env.close()
+
+
+def test_human_without_a_display_warns_and_runs_headless(monkeypatch) -> None:
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr("sys.platform", "linux")
+    with pytest.warns(RuntimeWarning, match=r"render_mode='human' needs a display"):
+        env = gym.make(ROLL, render_mode="human")
+    assert env.unwrapped.backend.gui is False
+    env.reset(seed=0)
+    assert env.render() is None
+    env.close()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import warnings
 from typing import TYPE_CHECKING, Any
 
 from tensegrity_gym.envs.calibration import apply_calibration, check_calibration
@@ -14,6 +15,7 @@ from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_ki
 from tensegrity_gym.model.randomization import Randomization, resolve_randomization
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
 from tensegrity_gym.sim.terrain import Terrain, terrain_builder
+from tensegrity_gym.sim.world import has_display
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -171,6 +173,23 @@ def _check_arguments(
         )
 
 
+def _window(render_mode: object) -> bool:
+    """Whether to open PyBullet's window: for ``render_mode="human"`` where there is a
+    display. Without one (a headless Linux machine) the env warns and runs without it,
+    so that ``check_env`` and scripts written for a desktop run there too."""
+    if render_mode != "human":
+        return False
+    if has_display():
+        return True
+    warnings.warn(
+        "render_mode='human' needs a display (DISPLAY is not set): running without "
+        "PyBullet's window; use render_mode='rgb_array' for frames",
+        RuntimeWarning,
+        stacklevel=3,
+    )
+    return False
+
+
 def make_env(
     robot: str | Path | RobotDescription = "three_bar",
     task: str = "roll",
@@ -205,7 +224,8 @@ def make_env(
             object. The driver's robot must be this env's.
         record_dir: write every episode to a ROS 2 bag in this folder (``episode_000``,
             ...): samples, commands, ground truth and estimates.
-        render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (PyBullet's window).
+        render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (PyBullet's window;
+            without a display a warning, and none).
         spawn_radius: the start position is drawn within this radius (m).
         control_period, time_step: seconds per env step and per physics step.
         terrain: the simulator's ground (:mod:`tensegrity_gym.sim.terrain`): ``"flat"``
@@ -250,7 +270,7 @@ def make_env(
         driver,
         control_period=control_period,
         time_step=time_step,
-        gui=render_mode == "human",
+        gui=_window(render_mode),
         spawn_radius=spawn_radius,
         terrain=terrain,
         world_seed=world_seed,

@@ -35,11 +35,17 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import CameraConfig, RobotDescription
     from tensegrity_gym.sim.terrain import Terrain
 
-__all__ = ["Checkpoint", "PhysicsWorld", "Snapshot"]
+__all__ = ["Checkpoint", "PhysicsWorld", "Snapshot", "has_display"]
 
 Checkpoint = tuple[int, list[float], list[float], list[float], list[float], int]
 """PyBullet's saved state, the rest lengths the motors set and those in effect, the
 motors' targets, the cable lengths of the damping term, the clock (ns)."""
+
+
+def has_display() -> bool:
+    """Whether PyBullet's window can open: off Linux always, on Linux with ``DISPLAY`` set
+    (without an X server its GUI ends the whole process)."""
+    return not sys.platform.startswith("linux") or bool(os.environ.get("DISPLAY"))
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,7 +83,7 @@ class PhysicsWorld:
         self.description = description
         self.time_step = time_step
         self.terrain = terrain
-        if gui and sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+        if gui and not has_display():
             # PyBullet's GUI ends the whole process when it finds no X server.
             raise RuntimeError(
                 "render_mode='human' needs a display (DISPLAY is not set); "
