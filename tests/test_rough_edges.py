@@ -157,3 +157,16 @@ def test_human_without_a_display_warns_and_runs_headless(monkeypatch) -> None:
     env.reset(seed=0)
     assert env.render() is None
     env.close()
+
+
+def test_importing_pybullet_prints_no_banner_and_stderr_comes_back() -> None:
+    import subprocess
+    import sys
+
+    code = "import sys, tensegrity_gym.sim.world, pybullet; print('still here', file=sys.stderr)"
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert "pybullet build time" not in done.stderr
+    assert "pybullet build time" not in done.stdout
+    assert done.stderr.strip() == "still here"

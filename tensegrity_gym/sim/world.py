@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import os
 import sys
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-import pybullet
 
 from tensegrity_gym.model.kinematics import member_lengths, rod_quaternion_from_axis
 from tensegrity_gym.model.lie import quat_rotate
@@ -28,7 +28,7 @@ from tensegrity_gym.model.samples import ns_to_seconds
 from tensegrity_gym.sim.cables import cable_wrenches, slew_motors
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import Iterator, Sequence
 
     from numpy.typing import NDArray
 
@@ -36,6 +36,35 @@ if TYPE_CHECKING:
     from tensegrity_gym.sim.terrain import Terrain
 
 __all__ = ["Checkpoint", "PhysicsWorld", "Snapshot", "has_display"]
+
+
+@contextmanager
+def _stderr_silenced() -> Iterator[None]:
+    """File descriptor 2 pointed at the null device for the block, then restored: what
+    C code writes to stderr meanwhile is dropped (Python's own ``sys.stderr`` is flushed
+    first). Where fd 2 cannot be duplicated (closed), the block runs as it is."""
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, 2)
+        finally:
+            os.close(null)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+# PyBullet's C extension prints "pybullet build time: ..." on stderr at import: not
+# something a user of the env (or of every command) needs on the terminal.
+with _stderr_silenced():
+    import pybullet
 
 Checkpoint = tuple[int, list[float], list[float], list[float], list[float], int]
 """PyBullet's saved state, the rest lengths the motors set and those in effect, the
