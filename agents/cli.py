@@ -34,6 +34,35 @@ def _positive_int(text: str) -> int:
     return value
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Each option's default after its help, where it has one (not None, not a flag's
+    False: those help texts say what their absence means)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.default is None or action.default is False:
+            return action.help
+        return super()._get_help_string(action)
+
+
+class _SubcommandParser(argparse.ArgumentParser):
+    """A subcommand's parser, whose ``--help`` shows defaults (and choices, as ever)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
+def _env_help(what: str) -> str:
+    """Help for ``--env``: ``what``, and the ids registered now (the robot presets' and
+    the labs' own), which any other id is refused with."""
+    import gymnasium as gym
+
+    import tensegrity_gym  # noqa: F401  (registers the ids)
+
+    ids = sorted(i for i in gym.registry if i.startswith("tensegrity_gym/"))
+    return f"{what}; registered: {', '.join(ids)}"
+
+
 def _user_errors() -> tuple[type[BaseException], ...]:
     """What a user can cause (a bad id, path, bag, robot YAML or config; a robot that does
     not answer; an estimator that cannot start from the data; a missing optional
@@ -263,7 +292,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="tensegrity-gym", description="Tensegrity robots with estimated-state observations."
     )
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_SubcommandParser)
+    env_help = _env_help("env id")
 
     from agents.evaluate import CONDITIONS, condition_names
     from agents.train import ALGORITHMS
@@ -282,17 +312,18 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--episodes", type=_positive_int, default=5, help="evaluation episodes per row"
     )
-    demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--out", default="demo_out")
+    demo.add_argument("--seed", type=int, default=0, help="seeds training and evaluation")
+    demo.add_argument("--out", default="demo_out", help="folder for the runs and the report")
     demo.add_argument("--no-progress", action="store_true", help="no progress bars")
     demo.set_defaults(func=_demo)
 
     tr = sub.add_parser("train", help="train a policy with stable-baselines3")
-    tr.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
-    tr.add_argument("--algo", default="ppo", choices=list(ALGORITHMS))
-    tr.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
+    tr.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
+    tr.add_argument("--algo", default="ppo", choices=list(ALGORITHMS), help="algorithm")
+    tr.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
+                    help="what the policy's observations are estimated with")  # fmt: skip
     tr.add_argument("--timesteps", type=_positive_int, default=None, help="default: the config's")
-    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--seed", type=int, default=0, help="seeds the envs and the algorithm")
     tr.add_argument(
         "--n-envs", type=_positive_int, default=None, help="workers; default: the config's"
     )
@@ -301,7 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--randomization", default=None, choices=sorted(RANDOMIZATIONS),
         help="train in worlds drawn from these ranges at each reset (default: none)",
     )  # fmt: skip
-    tr.add_argument("--out", required=True)
+    tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")
     tr.set_defaults(func=_train)
 
@@ -309,22 +340,24 @@ def build_parser() -> argparse.ArgumentParser:
         "evaluate", help="evaluate trained policies under each estimator; write the report"
     )
     ev.add_argument("models", nargs="+", help="training run folders (from train)")
-    ev.add_argument("--episodes", type=_positive_int, default=10)
+    ev.add_argument("--episodes", type=_positive_int, default=10, help="episodes per row")
     ev.add_argument(
         "--conditions",
         nargs="+",
         default=list(CONDITIONS),
         choices=condition_names(),
+        help="estimators and worlds to evaluate under",
     )
-    ev.add_argument("--seed", type=int, default=1000)
-    ev.add_argument("--out", required=True)
+    ev.add_argument("--seed", type=int, default=1000, help="episode k uses seed + k")
+    ev.add_argument("--out", required=True, help="folder for the report")
     ev.set_defaults(func=_evaluate)
 
     gait = sub.add_parser("gait", help="roll a robot with its scripted gait; plot the CoM")
-    gait.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
+    gait.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
     gait.add_argument("--steps", type=_positive_int, default=300, help="control steps (10 Hz)")
-    gait.add_argument("--seed", type=int, default=0)
-    gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
+    gait.add_argument("--seed", type=int, default=0, help="the episode's seed")
+    gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
+                      help="the estimator whose CoM is plotted against the truth")  # fmt: skip
     gait.add_argument(
         "--gait",
         default="forward",
@@ -378,16 +411,17 @@ def build_parser() -> argparse.ArgumentParser:
     bench.set_defaults(func=_bench)
 
     rec = sub.add_parser("record", help="run a policy and write each episode to a ROS 2 bag")
-    rec.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0")
+    rec.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
     rec.add_argument(
         "--policy",
         default="scripted",
         help="scripted (the robot's face gait), random, or a training run folder (from train)",
     )
-    rec.add_argument("--episodes", type=_positive_int, default=1)
+    rec.add_argument("--episodes", type=_positive_int, default=1, help="episodes (bags)")
     rec.add_argument("--steps", type=_positive_int, default=None, help="control steps per episode")
     rec.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
-    rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
+    rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
+                     help="the estimator run (and recorded) in the loop")  # fmt: skip
     rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
     rec.add_argument("--out", required=True, help="folder for the bags (episode_000, ...)")
     rec.set_defaults(func=_record)
@@ -396,7 +430,8 @@ def build_parser() -> argparse.ArgumentParser:
         "estimate", help="run an estimator over a bag; write its trajectory, metrics, plots"
     )
     est.add_argument("bag", help="a bag, or a folder of bags (one per episode)")
-    est.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()))
+    est.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
+                     help="the estimator to run over the bag")  # fmt: skip
     est.add_argument("--out", required=True, help="folder for the results")
     est.add_argument(
         "--seed",
@@ -424,7 +459,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="calibrate the UWB anchors and offsets from a recorded run of the robot moving",
     )
     cal.add_argument("bag", nargs="?", default=None, help="a bag of the robot moving")
-    cal.add_argument("--env", default=None, help="or record a calibration run of this env id")
+    cal.add_argument(
+        "--env", default=None, help=_env_help("or record a calibration run of this env id")
+    )
     cal.add_argument("--seconds", type=float, default=120.0, help="length of that run (s)")
     cal.add_argument("--world-seed", type=int, default=0, help="the simulated lab's seed")
     cal.add_argument("--robot", default=None, help="robot preset or YAML, for a bare bag")
@@ -449,7 +486,6 @@ def _add_identify(sub: Any) -> None:
     ide = sub.add_parser(
         "identify",
         help="fit a robot's physical parameters to a recorded run (multiple shooting, CMA-ES)",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     ide.add_argument("bag", help="a bag with commands, encoders and a trajectory")
     ide.add_argument("--out", required=True, help="the fitted robot description to write (YAML)")

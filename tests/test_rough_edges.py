@@ -170,3 +170,17 @@ def test_importing_pybullet_prints_no_banner_and_stderr_comes_back() -> None:
     assert "pybullet build time" not in done.stderr
     assert "pybullet build time" not in done.stdout
     assert done.stderr.strip() == "still here"
+
+
+@pytest.mark.parametrize("command", ["train", "record", "gait"])
+def test_subcommand_help_shows_defaults_and_the_registered_ids(command: str, capsys) -> None:
+    from agents.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main([command, "--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())  # argparse wraps lines
+    assert "tensegrity_gym/SuperBallGoTo-v0" in text  # a registered id, not only the default
+    assert "(default: tensegrity_gym/ThreeBarRoll-v0)" in text
+    assert "(default: ukf)" in text
+    assert "(default: None)" not in text
