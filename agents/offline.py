@@ -119,9 +119,51 @@ def record(
     """Run ``episodes`` episodes of ``policy`` on ``env_id`` and write one bag each into
     ``out``; ``driver`` (``"zenoh/tcp/HOST:PORT"``) runs a robot on the network instead
     of the id's default. Returns the bags written. An interruption (Ctrl-C, SIGTERM)
-    closes the current bag properly before it propagates."""
+    closes the current bag properly before it propagates; a run that fails before it
+    wrote anything removes the folders it made for ``out``."""
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
+    new = _new_folders(Path(out))
+    try:
+        return _record(env_id, policy, episodes, out, steps, seed, estimator, flush_period, driver)
+    except BaseException:
+        _remove_if_empty(new)  # a run that failed before its first bag leaves no folder
+        raise
+
+
+def _new_folders(path: Path) -> list[Path]:
+    """``path`` and those of its parents that do not exist yet, deepest first."""
+    new = []
+    for folder in [path, *path.parents]:
+        if folder.exists():
+            break
+        new.append(folder)
+    return new
+
+
+def _remove_if_empty(folders: list[Path]) -> None:
+    """Remove the folders, deepest first, as long as each is empty."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except FileNotFoundError:  # never made
+            continue
+        except OSError:  # not empty: what is in it stays, and its parents
+            return
+
+
+def _record(
+    env_id: str,
+    policy: str,
+    episodes: int,
+    out: Path,
+    steps: int | None,
+    seed: int,
+    estimator: str,
+    flush_period: float,
+    driver: str | None,
+) -> list[Path]:
+    """:func:`record`'s episodes, once its arguments are checked."""
     kwargs: dict[str, Any] = {"estimator": estimator, "record_dir": out}
     if driver is not None:
         kwargs["driver"] = driver

@@ -184,3 +184,31 @@ def test_subcommand_help_shows_defaults_and_the_registered_ids(command: str, cap
     assert "(default: tensegrity_gym/ThreeBarRoll-v0)" in text
     assert "(default: ukf)" in text
     assert "(default: None)" not in text
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"policy": "no/such/run"}, "no training run at that path"),
+        ({"policy": "scripted", "estimator": "nope"}, "nope"),
+    ],
+)
+def test_a_failed_record_leaves_no_folder_it_made(tmp_path, kwargs, message: str) -> None:
+    from agents.offline import record
+
+    out = tmp_path / "new" / "bags"
+    with pytest.raises(ValueError, match=message):
+        record(ROLL, episodes=1, out=out, steps=2, **kwargs)
+    assert list(tmp_path.iterdir()) == []  # neither bags/ nor new/
+    existing = tmp_path / "mine"
+    existing.mkdir()
+    with pytest.raises(ValueError, match=message):
+        record(ROLL, episodes=1, out=existing, steps=2, **kwargs)
+    assert existing.is_dir()  # the user's own folder stays
+
+
+def test_a_record_that_wrote_a_bag_keeps_it(tmp_path) -> None:
+    from agents.offline import record
+
+    paths = record(ROLL, "random", 1, tmp_path / "out", steps=2)
+    assert paths and all(p.exists() for p in paths)
