@@ -212,3 +212,39 @@ def test_a_record_that_wrote_a_bag_keeps_it(tmp_path) -> None:
 
     paths = record(ROLL, "random", 1, tmp_path / "out", steps=2)
     assert paths and all(p.exists() for p in paths)
+
+
+def _readme_rl_zoo3_command() -> list[str]:
+    """The README's rl-zoo3 training command, as written (its ``pip install`` aside)."""
+    import re
+    import shlex
+    from pathlib import Path
+
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    block = re.search(r"```bash\npip install rl_zoo3\n(.*?)```", text, re.S)
+    assert block is not None, "README: the rl-zoo3 snippet is gone"
+    return shlex.split(block.group(1).replace("\\\n", " "))
+
+
+@pytest.mark.slow
+def test_the_readme_rl_zoo3_snippet_trains(tmp_path) -> None:
+    import shutil
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    command = _readme_rl_zoo3_command()
+    assert command[:3] == ["python", "-m", "rl_zoo3.train"]
+    configs = Path(__file__).parents[1] / "agents" / "configs"
+    shutil.copytree(configs, tmp_path / "agents" / "configs")  # the snippet's relative path
+    tiny = ["--n-timesteps", "64", "-f", "logs", "--hyperparams", "n_envs:1", "n_steps:32",
+            "batch_size:32"]  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, *command[1:], *tiny],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert list((tmp_path / "logs" / "ppo").glob("*/tensegrity_gym-ThreeBarRoll-v0.zip"))
