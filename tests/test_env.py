@@ -28,7 +28,9 @@ def test_gymnasium_check_env(env_id: str, make_env) -> None:
     env = make_env(env_id)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        # "human" opens PyBullet's window, which needs a display: rgb_array is checked below.
+        # Warnings are errors here, and "human" without a display warns that it shows no
+        # window (check_env with its defaults passes headless: tests/test_rough_edges.py);
+        # rgb_array is checked below.
         check_env(env.unwrapped, skip_render_check=True)
     env.close()
 

@@ -478,10 +478,14 @@ class SimBackend:
             sched.reset(0.0)
         for sched in self._schedules.values():
             sched.due(0.0)  # the t = 0 samples are taken below
-        info: dict[str, object] = {}
-        if self.world_draw is not None:
-            info["randomization"] = self.world_draw.summary(self.description)
-        return StepResult(self._sample({name: [snap] for name in self._schedules}, rng), info=info)
+        samples = self._sample({name: [snap] for name in self._schedules}, rng)
+        return StepResult(samples, info=self._episode_info())
+
+    def _episode_info(self) -> dict[str, object]:
+        """What ``info`` says of this episode alone at reset: a randomised world's draws."""
+        if self.world_draw is None:
+            return {}
+        return {"randomization": self.world_draw.summary(self.description)}
 
     def _spawn_pose(
         self, rng: np.random.Generator, pose: dict[str, float]
