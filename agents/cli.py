@@ -294,7 +294,23 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log at debug level")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_SubcommandParser)
     env_help = _env_help("env id")
+    _add_training(sub, env_help)
+    _add_bench(sub)
+    _add_recordings(sub, env_help)
+    _add_identify(sub)
 
+    from hardware.link.emulator import add_arguments
+
+    emu = sub.add_parser(
+        "emulate", help="serve the simulated robot over the robot wire (Zenoh), in real time"
+    )
+    add_arguments(emu)
+    emu.set_defaults(func=_emulate)
+    return parser
+
+
+def _add_training(sub: Any, env_help: str) -> None:
+    """demo, train, evaluate and gait."""
     from agents.evaluate import CONDITIONS, condition_names
     from agents.train import ALGORITHMS
     from tensegrity_gym.model.randomization import RANDOMIZATIONS
@@ -368,6 +384,8 @@ def build_parser() -> argparse.ArgumentParser:
     gait.add_argument("--out", default="gait_out", help="folder for the plot and summary")
     gait.set_defaults(func=_gait)
 
+
+def _add_bench(sub: Any) -> None:
     bench = sub.add_parser("bench", help="measure env speed and memory; print JSON")
     bench.add_argument("--steps", type=_positive_int, default=2000, help="env steps timed per env")
     bench.add_argument(
@@ -409,6 +427,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)
+
+
+def _add_recordings(sub: Any, env_help: str) -> None:
+    """record, estimate and calibrate."""
+    from tensegrity_gym.model.registry import ESTIMATORS
 
     rec = sub.add_parser("record", help="run a policy and write each episode to a ROS 2 bag")
     rec.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
@@ -467,17 +490,6 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--robot", default=None, help="robot preset or YAML, for a bare bag")
     cal.add_argument("--out", required=True, help="the calibration file to write (YAML)")
     cal.set_defaults(func=_calibrate)
-
-    _add_identify(sub)
-
-    from hardware.link.emulator import add_arguments
-
-    emu = sub.add_parser(
-        "emulate", help="serve the simulated robot over the robot wire (Zenoh), in real time"
-    )
-    add_arguments(emu)
-    emu.set_defaults(func=_emulate)
-    return parser
 
 
 def _add_identify(sub: Any) -> None:
