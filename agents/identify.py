@@ -383,12 +383,15 @@ class _Problem:
     control_period: float
     time_step: float
 
-    def score(self, log_factors: NDArray[np.float64], chunk: slice) -> NDArray[np.float64]:
-        """Node RMS error (m) of each segment in ``chunk`` under the candidate."""
+    def errors(
+        self, log_factors: NDArray[np.float64], chunk: slice
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:func:`segment_errors` (CoM, node RMS; m) of each segment in ``chunk``
+        under the candidate."""
         d = apply_parameters(self.description, self.names, log_factors)
         segments = self.segments[chunk]
         paths = MODELS[self.model](d, segments, self.control_period, self.time_step)
-        return segment_errors(d, segments, paths)[1]
+        return segment_errors(d, segments, paths)
 
 
 _PROBLEM: _Problem | None = None
@@ -399,9 +402,12 @@ def _init_worker(problem: _Problem) -> None:
     _PROBLEM = problem
 
 
-def _score(args: tuple[NDArray[np.float64], slice]) -> NDArray[np.float64]:
+def _errors(
+    args: tuple[NDArray[np.float64], slice],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The worker's :meth:`_Problem.errors` of (candidate, chunk)."""
     assert _PROBLEM is not None
-    return _PROBLEM.score(*args)
+    return _PROBLEM.errors(*args)
 
 
 @dataclass(frozen=True)
@@ -467,7 +473,7 @@ def identify_run(
 
         def cost(candidates: list[NDArray[np.float64]]) -> list[float]:
             jobs = [(np.asarray(x), c) for x in candidates for c in chunks]
-            scores = list(pool.map(_score, jobs))
+            scores = [nodes for _, nodes in pool.map(_errors, jobs)]
             per = [np.concatenate(scores[i * len(chunks) : (i + 1) * len(chunks)])
                    for i in range(len(candidates))]  # fmt: skip
             return [float(np.mean(np.minimum(s, 1e3) ** 2)) for s in per]
@@ -482,7 +488,7 @@ def identify_run(
             es.tell(xs, cost(xs))
             logger.info("identify: %d evaluations, best %.4g", es.countevals, es.result.fbest)
         best = np.asarray(es.result.xbest, dtype=np.float64)
-        before, after = (list(pool.map(_score_both, [(x, c) for c in chunks]))
+        before, after = (list(pool.map(_errors, [(x, c) for c in chunks]))
                          for x in (np.zeros(len(names)), best))  # fmt: skip
     fitted = apply_parameters(start, names, best)
     return Identification(
@@ -492,13 +498,3 @@ def identify_run(
         int(es.countevals), time.perf_counter() - clock, segments, trajectory, model,
         run.control_period, time_step,
     )  # fmt: skip
-
-
-def _score_both(args: tuple[NDArray[np.float64], slice]) -> tuple[NDArray[np.float64], ...]:
-    """(CoM errors, node errors) of a chunk under a candidate."""
-    assert _PROBLEM is not None
-    p = _PROBLEM
-    x, chunk = args
-    d = apply_parameters(p.description, p.names, x)
-    segments = p.segments[chunk]
-    return segment_errors(d, segments, MODELS[p.model](d, segments, p.control_period, p.time_step))
