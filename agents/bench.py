@@ -8,9 +8,13 @@ from __future__ import annotations
 
 import os
 import platform
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from agents.bench_env import bench_env_speed, bench_memory
+from agents.cluster import executor
+
+if TYPE_CHECKING:
+    from agents.cluster import Executor
 
 __all__ = ["run_benchmarks"]
 
@@ -51,13 +55,37 @@ def run_benchmarks(
     link_steps: int = 300,
     soak_minutes: float = 0.0,
     sim2real: bool = False,
+    ray_address: str | None = None,
 ) -> dict[str, Any]:
     """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.bench_bags`) and
     the robot link against the emulator (:mod:`agents.bench_link`, ``link_steps`` 10 Hz
     steps, and a soak of ``soak_minutes``); with ``estimation``, also the estimation
     study and the UKF's speed against filterpy's (:mod:`agents.bench_estimation`); with
     ``sim2real``, the UKF in randomised worlds and system identification
-    (:mod:`agents.bench_sim2real`)."""
+    (:mod:`agents.bench_sim2real`); with ``ray_address``, the Ray vec env against
+    ``SubprocVecEnv`` and the sizing model's costs (:mod:`agents.bench_ray`), and the
+    estimation study's replays as Ray tasks on that cluster."""
+    with executor(ray_address) as jobs:
+        results = _run(speed_steps, memory_steps, estimation, bag_minutes, link_steps,
+                       soak_minutes, sim2real, jobs)  # fmt: skip
+        if not jobs.local:
+            from agents.bench_ray import bench_ray
+
+            results["ray"] = bench_ray()
+    return results
+
+
+def _run(
+    speed_steps: int,
+    memory_steps: int,
+    estimation: bool,
+    bag_minutes: float,
+    link_steps: int,
+    soak_minutes: float,
+    sim2real: bool,
+    jobs: Executor,
+) -> dict[str, Any]:
+    """:func:`run_benchmarks` but the Ray part; the estimation study's jobs on ``jobs``."""
     results: dict[str, Any] = {
         "machine": {
             "platform": platform.platform(),
@@ -93,7 +121,7 @@ def run_benchmarks(
             "superball fast_filter_step_ms_median": 5.0,
             "speedup_vs_filterpy_numpy_model": 50,
         }
-        results["estimation"] = bench_estimation()
+        results["estimation"] = bench_estimation(executor=jobs)
         from agents.bench_icp import bench_icp
 
         results["icp"] = bench_icp()

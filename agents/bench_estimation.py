@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -27,8 +28,11 @@ from estimation.ukf.filter import single_threaded_blas
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
+    from collections.abc import Callable, Sequence
+
     from numpy.typing import NDArray
 
+    from agents.cluster import Executor
     from estimation.ukf.estimator import FilterStep
     from estimation.ukf.measurements import MeasurementBatch
     from estimation.ukf.spring_mass import KernelArrays
@@ -117,28 +121,56 @@ def _mean_rows(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def bench_estimation(seeds: tuple[int, ...] = (0, 1, 2), steps: int = 200) -> dict[str, Any]:
-    """The accuracy table: scenario x variant, errors averaged over ``seeds``."""
-    table: list[dict[str, Any]] = []
-    scenarios = {
-        "face transition": record_face_transition,
-        "stationary actuation": record_stationary_actuation,
-    }
-    for scenario, record in scenarios.items():
-        runs = [record("tensegrity_gym/SuperBallRoll-v0", seed, steps) for seed in seeds]
-        for variant, config in VARIANTS.items():
-            rows = [_score(run, config) for run in runs]
-            table.append(
-                {"robot": "superball", "scenario": scenario, "variant": variant} | _mean_rows(rows)
-            )
-            log.info("%s / %s: %s", scenario, variant, table[-1])
-    three_bar = [
-        record_face_transition("tensegrity_gym/ThreeBarRoll-v0", seed, steps) for seed in seeds
+_SCENARIOS: dict[str, Callable[..., RecordedRun]] = {
+    "face transition": record_face_transition,
+    "stationary actuation": record_stationary_actuation,
+}
+"""The recordings of the study, by scenario."""
+
+
+def _record_job(steps: int, job: tuple[str, str, int]) -> RecordedRun:
+    """One recording of the study, ``job`` = (scenario, env id, seed)."""
+    scenario, env_id, seed = job
+    return _SCENARIOS[scenario](env_id, seed, steps)
+
+
+def _score_job(runs: Sequence[RecordedRun], job: tuple[int, str]) -> dict[str, Any]:
+    """One replay of the study, ``job`` = (index into ``runs``, variant)."""
+    return _score(runs[job[0]], VARIANTS[job[1]])
+
+
+def bench_estimation(
+    seeds: tuple[int, ...] = (0, 1, 2), steps: int = 200, executor: Executor | None = None
+) -> dict[str, Any]:
+    """The accuracy table: scenario x variant, errors averaged over ``seeds``. The
+    recordings, then the replays, are jobs of ``executor`` (default: here, one after
+    the other; :class:`agents.cluster.RayExecutor`: Ray tasks, the same numbers)."""
+    from agents.cluster import LocalExecutor
+
+    jobs = executor or LocalExecutor()
+    superball, three_bar = "tensegrity_gym/SuperBallRoll-v0", "tensegrity_gym/ThreeBarRoll-v0"
+    recordings = [(scenario, superball, seed) for scenario in _SCENARIOS for seed in seeds]
+    recordings += [("face transition", three_bar, seed) for seed in seeds]
+    runs = jobs.map(partial(_record_job, steps), recordings)
+
+    def indices(scenario: str, env_id: str) -> list[int]:
+        return [i for i, r in enumerate(recordings) if r[:2] == (scenario, env_id)]
+
+    rows = [  # (robot, scenario, variant, the indices of its runs)
+        ("superball", scenario, variant, indices(scenario, superball))
+        for scenario in _SCENARIOS
+        for variant in VARIANTS
     ]
-    table.append(
-        {"robot": "three_bar", "scenario": "face transition", "variant": "full"}
-        | _mean_rows([_score(run, VARIANTS["full"]) for run in three_bar])
-    )
+    rows.append(("three_bar", "face transition", "full", indices("face transition", three_bar)))
+    replays = [(i, variant) for _, _, variant, runs_of in rows for i in runs_of]
+    scores = iter(jobs.map(partial(_score_job, runs), replays))
+    table: list[dict[str, Any]] = []
+    for robot, scenario, variant, runs_of in rows:
+        scored = [next(scores) for _ in runs_of]
+        table.append(
+            {"robot": robot, "scenario": scenario, "variant": variant} | _mean_rows(scored)
+        )
+        log.info("%s / %s / %s: %s", robot, scenario, variant, table[-1])
     return {
         "settle_s": 2.0,
         "seconds_per_run": steps * 0.1,

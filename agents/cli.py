@@ -111,6 +111,8 @@ def _train(args: argparse.Namespace) -> int:
             config_file=Path(args.config) if args.config else None,
             progress_bar=not args.no_progress,
             env_kwargs={"randomization": args.randomization} if args.randomization else None,
+            ray_address=args.ray,
+            workers=args.workers,
         )
     except KeyboardInterrupt:
         log.warning("interrupted: the model reached so far is in %s", args.out)
@@ -132,6 +134,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             episodes=args.episodes,
             conditions=args.conditions,
             seed=args.seed,
+            ray_address=args.ray,
         )
     except ValueError as err:
         log.error("%s", err)
@@ -185,6 +188,7 @@ def _bench(args: argparse.Namespace) -> int:
         link_steps=args.link_steps,
         soak_minutes=args.soak_minutes,
         sim2real=args.sim2real,
+        ray_address=args.ray,
     )
     text = json.dumps(results, indent=2)
     if args.out:
@@ -237,6 +241,7 @@ def _estimate(args: argparse.Namespace) -> int:
             strict=args.strict,
             progress=not args.no_progress,
             calibration=args.calibration,
+            ray_address=args.ray,
         )
     except BagsFailedError as err:  # each failure is logged; the other bags were estimated
         results, failed = err.results, err
@@ -309,6 +314,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _add_ray(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--ray ADDRESS``: run ``what`` on a Ray cluster."""
+    parser.add_argument(
+        "--ray",
+        default=None,
+        metavar="ADDRESS",
+        help=f"run {what} on the Ray cluster at ADDRESS (HOST:PORT of `ray start --head`, "
+        "auto, or local: a Ray instance started here); needs pip install tensegrity-gym[ray]",
+    )
+
+
 def _add_training(sub: Any, env_help: str) -> None:
     """demo, train, evaluate and gait."""
     from agents.evaluate import CONDITIONS, condition_names
@@ -350,6 +366,10 @@ def _add_training(sub: Any, env_help: str) -> None:
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_ray(tr, "the envs, on --workers actors")
+    tr.add_argument("--workers", type=_positive_int, default=None,
+                    help="Ray actors sharing the --n-envs envs (default: one per CPU of the "
+                    "cluster, at most --n-envs); with --ray only")  # fmt: skip
     tr.set_defaults(func=_train)
 
     ev = sub.add_parser(
@@ -366,6 +386,7 @@ def _add_training(sub: Any, env_help: str) -> None:
     )
     ev.add_argument("--seed", type=int, default=1000, help="episode k uses seed + k")
     ev.add_argument("--out", required=True, help="folder for the report")
+    _add_ray(ev, "the episodes, one Ray task each,")
     ev.set_defaults(func=_evaluate)
 
     gait = sub.add_parser("gait", help="roll a robot with its scripted gait; plot the CoM")
@@ -425,6 +446,7 @@ def _add_bench(sub: Any) -> None:
         default=0.0,
         help="minutes of emulated operation watched for memory and latency growth",
     )
+    _add_ray(bench, "--estimation's replays, and also measure the Ray vec env (--ray part),")
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)
 
@@ -475,6 +497,7 @@ def _add_recordings(sub: Any, env_help: str) -> None:
         default=None,
         help="a UWB calibration file (tensegrity-gym calibrate) to use instead of the bag's",
     )
+    _add_ray(est, "one Ray task per bag (bags on a path every node reads)")
     est.set_defaults(func=_estimate)
 
     cal = sub.add_parser(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
@@ -28,6 +29,7 @@ if TYPE_CHECKING:
 
     from numpy.typing import NDArray
 
+    from agents.cluster import Executor
     from tensegrity_gym.envs.roll_env import TensegrityEnv
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.tasks.roll import RollTask
@@ -40,6 +42,7 @@ __all__ = [
     "condition",
     "condition_names",
     "count_rolls",
+    "evaluate_policies",
     "evaluate_policy",
     "load_policy",
 ]
@@ -187,6 +190,10 @@ class EpisodeResult:
     errors: NDArray[np.float64] = field(repr=False)
 
 
+def _no_reset(episode_seed: int) -> None:
+    """A policy without state of its own across episodes."""
+
+
 @dataclass
 class LoadedPolicy:
     """A trained model with the observation normalisation it was trained with."""
@@ -195,6 +202,29 @@ class LoadedPolicy:
     env_id: str
     trained_on: str
     act: Callable[[NDArray[np.float32]], NDArray[np.float32]]
+    new_episode: Callable[[int], None] = _no_reset
+    """Called with the episode's seed before it starts: a policy that draws reseeds, so
+    that an episode's actions depend on its seed alone, wherever and in whatever order
+    the episodes run."""
+    saved: dict[str, bytes] | None = field(default=None, repr=False)
+    """A trained policy's files (``model.zip``, ``config.yaml``, ``vecnormalize.pkl``):
+    it is pickled (sent to a Ray worker) as these and loaded again there."""
+
+    def __reduce_ex__(self, protocol: Any) -> Any:
+        if self.saved is None:
+            return super().__reduce_ex__(protocol)
+        return _policy_from_files, (self.saved, self.name)
+
+
+def _policy_from_files(saved: dict[str, bytes], name: str) -> LoadedPolicy:
+    """:func:`load_policy` of a run folder's files (a pickled :class:`LoadedPolicy`)."""
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory(prefix="tensegrity-policy-") as folder:
+        for file, content in saved.items():
+            (Path(folder) / file).write_bytes(content)
+        return load_policy(Path(folder), name)
 
 
 def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
@@ -240,18 +270,34 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
         action, _ = model.predict(normalise(obs), deterministic=True)
         return np.asarray(action, dtype=np.float32)
 
-    return LoadedPolicy(name or f"trained on {trained_on}", env_id, trained_on, act)
+    files = [f for f in (model_file, config_file, stats_file) if f.exists()]
+    saved = {f.name: f.read_bytes() for f in files}
+    return LoadedPolicy(name or f"trained on {trained_on}", env_id, trained_on, act, saved=saved)
+
+
+class _RandomActions:
+    """Uniform actions in [low, high], from a generator drawn anew for each episode from
+    (the policy's seed, the episode's seed)."""
+
+    def __init__(self, low: NDArray[np.float32], high: NDArray[np.float32], seed: int) -> None:
+        self.low, self.high, self.seed = low, high, seed
+        self.rng = np.random.default_rng(seed)
+
+    def new_episode(self, episode_seed: int) -> None:
+        self.rng = np.random.default_rng([self.seed, episode_seed])
+
+    def __call__(self, obs: NDArray[np.float32]) -> NDArray[np.float32]:
+        return self.rng.uniform(self.low, self.high).astype(np.float32)
 
 
 def random_policy(env_id: str, seed: int) -> LoadedPolicy:
-    """Uniform random actions, from a generator seeded with ``seed``."""
+    """Uniform random actions, each episode's from a generator seeded with ``seed`` and
+    the episode's seed."""
     env = gym.make(env_id, estimator="oracle")
     low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
     env.close()
-    rng = np.random.default_rng(seed)
-    return LoadedPolicy(
-        "random", env_id, "-", lambda obs: rng.uniform(low, high).astype(np.float32)
-    )
+    actions = _RandomActions(low, high, seed)
+    return LoadedPolicy("random", env_id, "-", actions, actions.new_episode)
 
 
 def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> EpisodeResult:
@@ -302,29 +348,97 @@ def evaluate_policy(
     condition: Condition,
     episodes: int,
     seed: int = 1000,
+    executor: Executor | None = None,
 ) -> list[EpisodeResult]:
-    """``episodes`` episodes of ``policy`` under ``condition``, seeds ``seed``, ``seed+1``..."""
-    spec_kwargs = gym.spec(policy.env_id).kwargs
-    if spec_kwargs.get("task", "roll") != "roll":
-        raise ValueError(
-            f"{policy.env_id}: evaluate measures progress along a goal heading, the Roll "
-            f"task's; it does not evaluate the {spec_kwargs['task']!r} task yet"
-        )
-    robot = spec_kwargs.get("robot", "three_bar")
-    description = load_robot(robot)
-    if condition.sensing is not None:
-        description = condition.sensing(description)
-    env = gym.make(
-        policy.env_id,
-        robot=description,
-        estimator=condition.estimator,
-        calibration=condition.calibration,
-        randomization=condition.randomization,
-    )
+    """``episodes`` episodes of ``policy`` under ``condition``, seeds ``seed``, ``seed+1``...
+    (:func:`evaluate_policies` of the one policy and condition)."""
+    results = evaluate_policies([policy], [condition], episodes, seed, executor)
+    return results[policy.name][condition.name]
+
+
+def evaluate_policies(
+    policies: Sequence[LoadedPolicy],
+    conditions: Sequence[Condition],
+    episodes: int,
+    seed: int = 1000,
+    executor: Executor | None = None,
+) -> dict[str, dict[str, list[EpisodeResult]]]:
+    """Every policy under every condition, ``episodes`` episodes each with seeds ``seed``,
+    ``seed+1``...: ``results[policy name][condition name]``. Each episode is a job of
+    ``executor`` (default: here, one after the other; an :class:`agents.cluster.RayExecutor`
+    runs them as Ray tasks, with the same results: an episode depends on its seed alone)."""
+    for policy in policies:
+        spec_kwargs = gym.spec(policy.env_id).kwargs
+        if spec_kwargs.get("task", "roll") != "roll":
+            raise ValueError(
+                f"{policy.env_id}: evaluate measures progress along a goal heading, the Roll "
+                f"task's; it does not evaluate the {spec_kwargs['task']!r} task yet"
+            )
+    from agents.cluster import LocalExecutor
+
+    jobs = [
+        (p, c, seed + k)
+        for p in range(len(policies))
+        for c in range(len(conditions))
+        for k in range(episodes)
+    ]
+    run = partial(_episode, tuple(policies), tuple(conditions))
     try:
-        return [run_episode(env, policy.act, seed + k) for k in range(episodes)]
+        done = (executor or LocalExecutor()).map(run, jobs)
     finally:
+        _release_env()
+    results: dict[str, dict[str, list[EpisodeResult]]] = {
+        p.name: {c.name: [] for c in conditions} for p in policies
+    }
+    for (p, c, _), result in zip(jobs, done, strict=True):
+        results[policies[p].name][conditions[c].name].append(result)
+    return results
+
+
+_ENV: dict[tuple[str, Condition], gym.Env[Any, Any]] = {}
+"""The env of the last (env id, condition) this process ran an episode under: the next
+episodes under the same reuse it (an episode depends on its seed alone)."""
+
+
+def _condition_env(env_id: str, condition: Condition) -> gym.Env[Any, Any]:
+    """The env of ``env_id`` under ``condition``, made once per process and condition."""
+    key = (env_id, condition)
+    if key not in _ENV:
+        _release_env()
+        robot = gym.spec(env_id).kwargs.get("robot", "three_bar")
+        description = load_robot(robot)
+        if condition.sensing is not None:
+            description = condition.sensing(description)
+        _ENV[key] = gym.make(
+            env_id,
+            robot=description,
+            estimator=condition.estimator,
+            calibration=condition.calibration,
+            randomization=condition.randomization,
+        )
+    return _ENV[key]
+
+
+def _release_env() -> None:
+    """Close this process's cached env (:func:`_condition_env`)."""
+    for env in _ENV.values():
         env.close()
+    _ENV.clear()
+
+
+def _episode(
+    policies: Sequence[LoadedPolicy], conditions: Sequence[Condition], job: tuple[int, int, int]
+) -> EpisodeResult:
+    """One episode, ``job`` = (policy index, condition index, seed): the job that
+    :func:`evaluate_policies` maps, here or on a Ray worker."""
+    policy, condition = policies[job[0]], conditions[job[1]]
+    env = _condition_env(policy.env_id, condition)
+    policy.new_episode(job[2])
+    try:
+        return run_episode(env, policy.act, job[2])
+    except BaseException:
+        _release_env()
+        raise
 
 
 def summarise(results: Sequence[EpisodeResult]) -> dict[str, Any]:

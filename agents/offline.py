@@ -9,8 +9,11 @@ from __future__ import annotations
 
 import json
 import logging
+import tempfile
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -20,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
 from agents.calibration_run import load_uwb_calibration
+from agents.cluster import executor
 from agents.plots import plot_com_paths, plot_errors
 from agents.runs import estimation_errors
 from estimation.metrics import body_poses, trajectory_errors
@@ -239,9 +243,12 @@ def estimate_bag(
     settle: float = 2.0,
     progress: bool = True,
     calibration: str | Path | None = None,
+    ray_address: str | None = None,
 ) -> list[dict[str, Any]]:
     """Run ``estimator`` over every bag at ``bag`` (one bag, or a folder of episodes),
-    with the bag's own UWB calibration or a ``calibration`` file's.
+    with the bag's own UWB calibration or a ``calibration`` file's; with
+    ``ray_address``, each bag as a task on that Ray cluster (the bags on a path every
+    node reads; the results come back here).
 
     Writes per bag, into ``out`` (``out/<bag name>`` for a folder of several):
     ``estimate.tum`` (the body frame of :func:`estimation.metrics.body_poses`, origin at
@@ -257,26 +264,56 @@ def estimate_bag(
     estimator_spec(estimator)  # an unknown name is refused before any bag is opened
     uwb = None if calibration is None else load_uwb_calibration(calibration)
     bags = find_bags(bag)
-
-    def one(path: Path, folder: Path) -> dict[str, Any]:
-        return _estimate_one(
-            path, estimator, folder, seed, description, strict, settle, progress, uwb
+    with executor(ray_address) as jobs:
+        run = partial(
+            _estimate_job, estimator=estimator, seed=seed, description=description,
+            strict=strict, settle=settle, progress=progress and jobs.local, uwb=uwb,
         )  # fmt: skip
-
-    if len(bags) == 1:
-        return [one(bags[0], out)]
+        outcomes = jobs.map(run, bags)
     results, failures = [], []
-    for path in bags:
-        try:
-            results.append(one(path, out / path.name))
-        except BAG_FAILURES as err:
-            text = " ".join(str(err).split())  # one line per bag, whatever the message
-            why = text if str(path) in text else f"{path}: {type(err).__name__}: {text}"
+    for path, outcome in zip(bags, outcomes, strict=True):
+        if outcome.error is not None and len(bags) == 1:
+            raise outcome.error
+        if outcome.error is not None:
+            text = " ".join(str(outcome.error).split())  # one line per bag, whatever it says
+            why = text if str(path) in text else f"{path}: {type(outcome.error).__name__}: {text}"
             log.error("%s", why)
             failures.append((path, why))
+            continue
+        outcome.write(out if len(bags) == 1 else out / path.name)
+        results.append(outcome.metrics)
     if failures:
         raise BagsFailedError(results, failures, len(bags))
     return results
+
+
+@dataclass
+class _BagOutcome:
+    """What estimating one bag gave, to be written where the caller runs: the metrics
+    and the files (name: content), or the error that stopped it."""
+
+    metrics: dict[str, Any] = field(default_factory=dict)
+    files: dict[str, bytes] = field(default_factory=dict)
+    error: Exception | None = None
+
+    def write(self, folder: Path) -> None:
+        """The files into ``folder`` (made if need be)."""
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, content in self.files.items():
+            (folder / name).write_bytes(content)
+
+
+def _estimate_job(path: Path, **kwargs: Any) -> _BagOutcome:
+    """One bag, :func:`estimate_bag`'s job, here or as a Ray task: the results are made
+    in a scratch folder and returned, so that they reach the caller's ``out`` from any
+    node (``kwargs``: :func:`_estimate_one`'s)."""
+    with tempfile.TemporaryDirectory(prefix="tensegrity-estimate-") as scratch:
+        try:
+            metrics = _estimate_one(path, out=Path(scratch), **kwargs)
+        except BAG_FAILURES as err:
+            return _BagOutcome(error=err)
+        files = {f.name: f.read_bytes() for f in sorted(Path(scratch).iterdir()) if f.is_file()}
+    return _BagOutcome(metrics, files)
 
 
 def calibration_against_truth(backend: ReplayBackend) -> dict[str, Any]:
@@ -308,6 +345,7 @@ def calibration_against_truth(backend: ReplayBackend) -> dict[str, Any]:
 
 def _estimate_one(
     path: Path,
+    *,
     estimator: str,
     out: Path,
     seed: int,

@@ -9,10 +9,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from agents.cluster import executor
 from agents.evaluate import (
     CONDITIONS,
     condition,
-    evaluate_policy,
+    evaluate_policies,
     load_policy,
     random_policy,
     summarise,
@@ -122,9 +123,11 @@ def write_report(
     conditions: Sequence[str] = tuple(CONDITIONS),
     seed: int = 1000,
     include_random: bool = True,
+    ray_address: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate the trained policies of ``run_dirs`` (and a random policy) under
-    ``conditions``; write ``report.md``, ``report.json`` and the plots into ``out``."""
+    ``conditions``; write ``report.md``, ``report.json`` and the plots into ``out``.
+    ``ray_address``: the episodes run as tasks on that Ray cluster (the same numbers)."""
     chosen = {c: condition(c) for c in conditions}  # an unknown name is refused here
     if not run_dirs:
         raise ValueError("no trained model to evaluate")
@@ -140,12 +143,9 @@ def write_report(
     if include_random:
         policies.append(random_policy(env_id, seed))
     out.mkdir(parents=True, exist_ok=True)
-    results: dict[str, dict[str, list[EpisodeResult]]] = {}
-    for policy in policies:
-        results[policy.name] = {}
-        for cond in conditions:
-            log.info("evaluating %s under %s", policy.name, cond)
-            results[policy.name][cond] = evaluate_policy(policy, chosen[cond], episodes, seed)
+    log.info("evaluating %s under %s", [p.name for p in policies], list(conditions))
+    with executor(ray_address) as jobs:
+        results = evaluate_policies(policies, list(chosen.values()), episodes, seed, jobs)
     table = {p: {c: summarise(r) for c, r in by_cond.items()} for p, by_cond in results.items()}
 
     checks: dict[str, Any] = {}

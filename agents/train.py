@@ -159,15 +159,35 @@ class TrainConfig:
     env_kwargs: dict[str, Any] = field(default_factory=dict)
 
 
-def make_training_env(
-    env_id: str, n_envs: int, seed: int, env_kwargs: dict[str, Any], monitor_dir: Path | None
-) -> VecEnv:
-    """``n_envs`` Monitor-wrapped envs, in subprocesses where there is more than one core."""
-    from stable_baselines3.common.env_util import make_vec_env
-    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+def qualified_id(env_id: str) -> str:
+    """``env_id`` as ``module:id``: a fresh worker interpreter registers the ids by
+    importing the module it names."""
+    return env_id if ":" in env_id else f"tensegrity_gym:{env_id}"
 
-    # A fresh worker interpreter registers the ids by importing the module the id names.
-    qualified = env_id if ":" in env_id else f"tensegrity_gym:{env_id}"
+
+def make_training_env(
+    env_id: str,
+    n_envs: int,
+    seed: int,
+    env_kwargs: dict[str, Any],
+    monitor_dir: Path | None,
+    workers: int | None = None,
+) -> VecEnv:
+    """``n_envs`` Monitor-wrapped envs, in subprocesses where there is more than one core;
+    with ``workers``, on that many Ray actors of the connected cluster
+    (:class:`agents.cluster.vec_env.RayVecEnv`), the Monitor log kept here."""
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
+
+    qualified = qualified_id(env_id)
+    if workers is not None:
+        from agents.cluster.vec_env import RayVecEnv
+
+        venv = RayVecEnv(qualified, n_envs, seed, env_kwargs, workers=workers)
+        if monitor_dir is not None:
+            monitor_dir.mkdir(parents=True, exist_ok=True)
+        log.info("%d envs on %d Ray workers", n_envs, workers)
+        return VecMonitor(venv, str(monitor_dir / "ray") if monitor_dir is not None else None)
     use_processes = n_envs > 1 and (os.cpu_count() or 1) > 1
     if use_processes:  # one reset here first: a UWB calibration run is then cached for all
         import gymnasium as gym
@@ -199,6 +219,8 @@ def train(
     progress_bar: bool = True,
     env_kwargs: dict[str, Any] | None = None,
     callbacks: Sequence[BaseCallback] = (),
+    ray_address: str | None = None,
+    workers: int | None = None,
 ) -> Path:
     """Train, and return the path of the saved model (``out/model.zip``).
 
@@ -207,11 +229,12 @@ def train(
     ``callbacks`` run beside the checkpointing. Ctrl-C
     saves the model reached so far as ``out/model.zip`` (``config.yaml`` then says
     ``interrupted: true``) and re-raises.
+
+    ``ray_address`` (``HOST:PORT``, ``auto`` or ``local``) steps the ``n_envs`` envs on
+    ``workers`` Ray actors of that cluster (default: one per CPU of the cluster, at most
+    ``n_envs``); the learner and the run folder stay in this process.
     """
     import gymnasium as gym
-    import torch
-    from stable_baselines3.common.callbacks import CheckpointCallback
-    from stable_baselines3.common.vec_env import VecNormalize
 
     estimator_spec(estimator)  # an unknown name is refused before anything starts
     if env_id not in gym.registry:
@@ -220,54 +243,67 @@ def train(
         ids = sorted(k for k in gym.registry if k.startswith("tensegrity_gym/"))
         raise ValueError(f"unknown env id {env_id!r}; valid choices: {ids}")
     params = load_hyperparams(algo, env_id, config_file)
-    cls = _algorithm_class(algo)
     total = int(timesteps if timesteps is not None else params.pop("n_timesteps", 100_000))
     params.pop("n_timesteps", None)
-    workers = int(n_envs if n_envs is not None else params.pop("n_envs", 1))
+    envs = int(n_envs if n_envs is not None else params.pop("n_envs", 1))
     params.pop("n_envs", None)
-    if total < 1 or workers < 1:
-        raise ValueError(f"timesteps ({total}) and n_envs ({workers}) must be positive")
+    if total < 1 or envs < 1 or (workers is not None and workers < 1):
+        raise ValueError(
+            f"timesteps ({total}), n_envs ({envs}) and workers ({workers}) must be positive"
+        )
+    if workers is not None and ray_address is None:
+        raise ValueError("workers are Ray actors: give the cluster's address (--ray)")
     kwargs = {"estimator": estimator, **(env_kwargs or {})}
-    config = TrainConfig(env_id, algo, estimator, total, seed, workers, dict(params), kwargs)
+    config = TrainConfig(env_id, algo, estimator, total, seed, envs, dict(params), kwargs)
+    if ray_address is None:
+        return _run(config, out, checkpoint_every, progress_bar, callbacks, None)
+    from agents.cluster import cluster_session, require_ray
 
+    with cluster_session(ray_address):
+        if workers is None:
+            cpus = int(require_ray().available_resources().get("CPU", 1))
+            workers = max(1, min(envs, cpus))
+        return _run(config, out, checkpoint_every, progress_bar, callbacks, workers)
+
+
+def _run(
+    config: TrainConfig,
+    out: Path,
+    checkpoint_every: int,
+    progress_bar: bool,
+    callbacks: Sequence[BaseCallback],
+    workers: int | None,
+) -> Path:
+    """:func:`train`'s run, its arguments checked; ``workers``: Ray actors, or None."""
+    import torch
+    from stable_baselines3.common.callbacks import CheckpointCallback
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    params = dict(config.hyperparams)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)  # small networks: threads only contend with the env workers
-    venv = make_training_env(env_id, workers, seed, kwargs, out / "monitor")
+    venv = make_training_env(
+        config.env_id, config.n_envs, config.seed, config.env_kwargs, out / "monitor", workers
+    )
     normalize = params.pop("normalize", False)
     if normalize:
         norm_kwargs = normalize if isinstance(normalize, dict) else {}
         venv = VecNormalize(venv, gamma=params.get("gamma", 0.99), **norm_kwargs)
-    policy = params.pop("policy", "MlpPolicy")
-    policy_kwargs = params.pop("policy_kwargs", None)
-    tb: str | None = str(out / "tb")
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        log.warning("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
-        tb = None
-    model = cls(
-        policy,
-        venv,
-        policy_kwargs=policy_kwargs,
-        seed=seed,
-        device="cpu",
-        verbose=0,
-        tensorboard_log=tb,
-        **params,
-    )
+    model = _make_model(config, params, venv, out)
     checkpoints = CheckpointCallback(
-        save_freq=max(checkpoint_every // workers, 1),
+        save_freq=max(checkpoint_every // config.n_envs, 1),
         save_path=str(out / "checkpoints"),
         name_prefix="model",
         save_vecnormalize=True,
     )
+    extra = [] if workers is None else [_restart_logger(venv)]
     interrupted = False
     try:
         model.learn(
-            total,
-            callback=[checkpoints, *callbacks],
+            config.timesteps,
+            callback=[checkpoints, *extra, *callbacks],
             progress_bar=progress_bar,
-            tb_log_name=algo,
+            tb_log_name=config.algo,
         )
     except KeyboardInterrupt:
         interrupted = True
@@ -280,8 +316,52 @@ def train(
             "completed_timesteps": int(model.num_timesteps),
             "interrupted": interrupted,
         }
+        if workers is not None:
+            record |= {"ray_workers": workers, "worker_restarts": _restarts(venv)}
         (out / "config.yaml").write_text(yaml.safe_dump(record, sort_keys=False))
         venv.close()
     if interrupted:
         raise KeyboardInterrupt
     return out / "model.zip"
+
+
+def _make_model(
+    config: TrainConfig, params: dict[str, Any], venv: VecEnv, out: Path
+) -> BaseAlgorithm:
+    """The algorithm on ``venv``, with the config's policy and TensorBoard in ``out/tb``."""
+    policy = params.pop("policy", "MlpPolicy")
+    policy_kwargs = params.pop("policy_kwargs", None)
+    tb: str | None = str(out / "tb")
+    try:
+        import tensorboard  # noqa: F401
+    except ImportError:
+        log.warning("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
+        tb = None
+    return _algorithm_class(config.algo)(
+        policy,
+        venv,
+        policy_kwargs=policy_kwargs,
+        seed=config.seed,
+        device="cpu",
+        verbose=0,
+        tensorboard_log=tb,
+        **params,
+    )
+
+
+def _restarts(venv: VecEnv) -> int:
+    """Worker restarts of the Ray vec env under ``venv``'s wrappers."""
+    return int(getattr(venv.unwrapped, "restarts", 0))
+
+
+def _restart_logger(venv: VecEnv) -> BaseCallback:
+    """A callback that puts the Ray workers' restart count in SB3's log
+    (``ray/worker_restarts``, in TensorBoard beside the rollout figures)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class WorkerRestarts(BaseCallback):
+        def _on_step(self) -> bool:
+            self.logger.record("ray/worker_restarts", _restarts(venv))
+            return True
+
+    return WorkerRestarts()

@@ -45,6 +45,22 @@ def test_a_typical_mistake_is_one_line_and_exit_2(
         assert "\n" not in record.getMessage() and record.exc_info is None
 
 
+@pytest.mark.parametrize(
+    "argv", [["train", "--out", "{tmp}/t", "--ray", "local"], ["bench", "--ray", "local"]]
+)
+def test_ray_without_ray_says_how_to_install_it(
+    argv: list[str],
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray fails, as when not installed
+    with caplog.at_level(logging.ERROR):
+        assert main([a.format(tmp=tmp_path) for a in argv]) == 2
+    [error] = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert "pip install tensegrity-gym[ray]" in error and "\n" not in error
+
+
 def test_verbose_shows_the_traceback(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     with caplog.at_level(logging.ERROR):
         code = main(["--verbose", "gait", "--env", "tensegrity_gym/Nope-v0"])

@@ -23,8 +23,8 @@ if TYPE_CHECKING:
 THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
 
 
-def _tiny_config(tmp: Path) -> Path:
-    """A PPO config small enough to train in seconds."""
+def _tiny_config(tmp: Path, **overrides: int) -> Path:
+    """A PPO config small enough to train in seconds (``overrides``: other values)."""
     config = {
         THREE_BAR: {
             "n_envs": 1,
@@ -35,6 +35,7 @@ def _tiny_config(tmp: Path) -> Path:
             "n_epochs": 2,
             "policy_kwargs": "dict(net_arch=dict(pi=[16], vf=[16]))",
         }
+        | overrides
     }
     path = tmp / "tiny.yml"
     path.write_text(yaml.safe_dump(config))
