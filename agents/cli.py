@@ -71,8 +71,10 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
     from estimation.ukf.initialise import InitialisationError
     from hardware.link.wire import LinkError
+    from hardware.viewer import ViewerError
 
-    return (ValueError, OSError, ImportError, LinkError, InitialisationError, gymnasium.error.Error)
+    return (ValueError, OSError, ImportError, LinkError, InitialisationError, ViewerError,
+            gymnasium.error.Error)  # fmt: skip
 
 
 def _demo(args: argparse.Namespace) -> int:
@@ -216,6 +218,7 @@ def _record(args: argparse.Namespace) -> int:
             seed=args.seed,
             estimator=args.estimator,
             driver=args.driver,
+            markers=args.markers,
         )
     except KeyboardInterrupt:
         log.warning("interrupted: the bag being written was closed and is complete so far")
@@ -286,6 +289,40 @@ def _identify(args: argparse.Namespace) -> int:
     return 0
 
 
+def _view(args: argparse.Namespace) -> int:
+    from agents.view import view
+
+    bag = Path(args.bag) if args.bag else None
+    view(args.env, args.policy, bag=bag, port=args.port, speed=args.speed,
+         episodes=args.episodes, steps=args.steps, seed=args.seed,
+         estimator=args.estimator)  # fmt: skip
+    return 0
+
+
+def _add_view(sub: Any, env_help: str) -> None:
+    """view: the live Foxglove view of a simulation or a replayed bag."""
+    from hardware.viewer import DEFAULT_PORT
+    from tensegrity_gym.model.registry import ESTIMATORS
+
+    v = sub.add_parser(
+        "view", help="stream a simulation or a replayed bag to Foxglove (ws://localhost:PORT)"
+    )
+    v.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
+    v.add_argument("--policy", default="scripted",
+                   help="scripted (the robot's face gait), random, or a training run "
+                   "folder")  # fmt: skip
+    v.add_argument("--bag", default=None, help="replay this bag instead (its commands drive it)")
+    v.add_argument("--port", type=_count, default=DEFAULT_PORT, help="WebSocket port")
+    v.add_argument("--speed", type=float, default=1.0,
+                   help="run time per wall-clock time; 0: as fast as it runs")  # fmt: skip
+    v.add_argument("--episodes", type=_count, default=0, help="episodes; 0: until Ctrl-C")
+    v.add_argument("--steps", type=_positive_int, default=None, help="control steps per episode")
+    v.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
+    v.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
+                   help="the estimator run in the loop")  # fmt: skip
+    v.set_defaults(func=_view)
+
+
 def _emulate(args: argparse.Namespace) -> int:
     from hardware.link.emulator import run_from_args
 
@@ -302,6 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_training(sub, env_help)
     _add_bench(sub)
     _add_recordings(sub, env_help)
+    _add_view(sub, env_help)
     _add_identify(sub)
 
     from hardware.link.emulator import add_arguments
@@ -469,6 +507,9 @@ def _add_recordings(sub: Any, env_help: str) -> None:
                      help="the estimator run (and recorded) in the loop")  # fmt: skip
     rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
     rec.add_argument("--out", required=True, help="folder for the bags (episode_000, ...)")
+    rec.add_argument("--markers", action=argparse.BooleanOptionalAction, default=True,
+                     help="write /tf and /tensegrity/markers (what ROS viewers draw) at the "
+                     "control rate")  # fmt: skip
     rec.set_defaults(func=_record)
 
     est = sub.add_parser(

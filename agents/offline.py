@@ -119,17 +119,20 @@ def record(
     estimator: str = "ukf",
     flush_period: float = 1.0,
     driver: str | None = None,
+    markers: bool = True,
 ) -> list[Path]:
     """Run ``episodes`` episodes of ``policy`` on ``env_id`` and write one bag each into
     ``out``; ``driver`` (``"zenoh/tcp/HOST:PORT"``) runs a robot on the network instead
-    of the id's default. Returns the bags written. An interruption (Ctrl-C, SIGTERM)
+    of the id's default; ``markers`` writes what viewers draw (``/tf``, the robot as
+    markers) at the control rate. Returns the bags written. An interruption (Ctrl-C, SIGTERM)
     closes the current bag properly before it propagates; a run that fails before it
     wrote anything removes the folders it made for ``out``."""
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     new = _new_folders(Path(out))
     try:
-        return _record(env_id, policy, episodes, out, steps, seed, estimator, flush_period, driver)
+        return _record(env_id, policy, episodes, out, steps, seed, estimator, flush_period, driver,
+                       markers)  # fmt: skip
     except BaseException:
         _remove_if_empty(new)  # a run that failed before its first bag leaves no folder
         raise
@@ -166,6 +169,7 @@ def _record(
     estimator: str,
     flush_period: float,
     driver: str | None,
+    markers: bool,
 ) -> list[Path]:
     """:func:`record`'s episodes, once its arguments are checked."""
     kwargs: dict[str, Any] = {"estimator": estimator, "record_dir": out}
@@ -178,6 +182,7 @@ def _record(
     backend = inner.backend
     sink = backend.sink  # type: ignore[attr-defined]
     sink.flush_period = flush_period
+    sink.markers = markers
     sink.run_info.update({"env": env_id, "policy": policy, "seed": seed})
     act, reset_policy = make_policy(policy, env, seed)
     try:

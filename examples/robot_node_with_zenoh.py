@@ -93,7 +93,7 @@ def serve(
     tick = 0
     while time.monotonic() - start < seconds:
         if tick % 100 == 0:  # about once a second, for late joiners
-            put("/robot_description", "std_msgs/msg/String", description)
+            put("/tensegrity/robot_description_yaml", "std_msgs/msg/String", description)
             put("/tensegrity/calibration", "tensegrity_msgs/msg/SensorCalibration", calibration)
         with lock:
             alive = time.monotonic() - last_heartbeat[0] < WATCHDOG

@@ -61,7 +61,7 @@ def main(out: Path, robot: str = "three_bar") -> None:
 
         # Once, first: the robot and the calibration (no UWB offsets measured: zeros).
         write(
-            "/robot_description",
+            "/tensegrity/robot_description_yaml",
             "std_msgs/msg/String",
             T["std_msgs/msg/String"](data=dump_robot(d)),
             0,

@@ -11,6 +11,7 @@ bag per episode. The wrapped parts behave exactly as before. Times are the sampl
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -21,11 +22,11 @@ from tensegrity_gym.model.protocols import backend_can_wait
 from tensegrity_gym.model.samples import ns_to_seconds, seconds_to_ns
 
 if TYPE_CHECKING:
-    from collections.abc import Mapping, Sequence
+    from collections.abc import Callable, Mapping, Sequence
 
     from numpy.typing import NDArray
 
-    from hardware.bag.writer import BagWriter
+    from hardware.bag.writer import MessageWriter
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.estimate import Estimate
     from tensegrity_gym.model.protocols import (
@@ -40,12 +41,16 @@ if TYPE_CHECKING:
 __all__ = [
     "EPISODE_INFO",
     "BagSink",
+    "FanOutSink",
     "MemorySink",
     "RecordedRun",
     "RecordedStep",
     "RecordingBackend",
     "RecordingEstimator",
     "RunSink",
+    "WriterSink",
+    "latest_nis",
+    "wall_clock_origin_ns",
 ]
 
 log = logging.getLogger(__name__)
@@ -98,6 +103,11 @@ class RunSink(Protocol):
 
     def estimate(self, estimate: Estimate, t_log: float) -> None:
         """What the estimator made of the latest samples, known at ``t_log`` (s)."""
+        ...
+
+    def innovation(self, nis: float, t_log: float) -> None:
+        """The estimator's latest normalised innovation squared per measurement row
+        (see :func:`latest_nis`), known at ``t_log`` (s)."""
         ...
 
     def end(self) -> None:
@@ -188,8 +198,13 @@ class RecordingBackend:
         self.inner.stop()
 
     def close(self) -> None:
+        """End the sink's episode (and close a sink that has a ``close``, a live view's
+        server), then the wrapped backend."""
         try:
             self.sink.end()
+            close = getattr(self.sink, "close", None)
+            if close is not None:
+                close()
         finally:
             self.inner.close()
 
@@ -202,6 +217,7 @@ class RecordingEstimator:
         self.sink = sink
         self.backend = backend
         self.needs_camera = inner.needs_camera
+        self._updates: int | None = -1  # the inner estimator's update count at the last NIS
 
     def __getattr__(self, name: str) -> Any:  # the wrapped estimator's diagnostics
         if name == "inner":
@@ -217,13 +233,35 @@ class RecordingEstimator:
         rng: np.random.Generator,
     ) -> Estimate:
         estimate = self.inner.reset(description, calibration, samples, command, rng)
-        self.sink.estimate(estimate, self.backend.t_command)
+        self._updates = -1
+        self._hand_on(estimate)
         return estimate
 
     def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
         estimate = self.inner.update(samples, command)
-        self.sink.estimate(estimate, self.backend.t_command)
+        self._hand_on(estimate)
         return estimate
+
+    def _hand_on(self, estimate: Estimate) -> None:
+        """The estimate to the sink, and the latest innovation where there is a new one."""
+        t = self.backend.t_command
+        self.sink.estimate(estimate, t)
+        nis = latest_nis(self.inner)
+        updates = getattr(getattr(self.inner, "diagnostics", None), "updates", None)
+        if nis is not None and updates != self._updates:
+            self._updates = updates
+            self.sink.innovation(nis, t)
+
+
+def latest_nis(estimator: object) -> float | None:
+    """The normalised innovation squared per accepted row of the estimator's latest
+    update with one (the UKF's ``diagnostics.nis_history``), finite; None for an
+    estimator that keeps none."""
+    history = getattr(getattr(estimator, "diagnostics", None), "nis_history", None)
+    if not history:
+        return None
+    nis = float(history[-1])
+    return nis if np.isfinite(nis) else None
 
 
 class MemorySink:
@@ -256,36 +294,100 @@ class MemorySink:
     def estimate(self, estimate: Estimate, t_log: float) -> None:
         pass
 
+    def innovation(self, nis: float, t_log: float) -> None:
+        pass
+
     def end(self) -> None:
         pass
 
 
-class BagSink:
-    """Writes each episode to its own bag, ``<folder>/episode_000``, ``episode_001``, ...
+class FanOutSink:
+    """Hands everything to several sinks, in order (a bag and a live view)."""
+
+    def __init__(self, sinks: Sequence[RunSink]) -> None:
+        self.sinks = list(sinks)
+
+    def begin(self, *args: Any, **kwargs: Any) -> None:
+        for sink in self.sinks:
+            sink.begin(*args, **kwargs)
+
+    def step(self, t_command: float, step: RecordedStep) -> None:
+        for sink in self.sinks:
+            sink.step(t_command, step)
+
+    def estimate(self, estimate: Estimate, t_log: float) -> None:
+        for sink in self.sinks:
+            sink.estimate(estimate, t_log)
+
+    def innovation(self, nis: float, t_log: float) -> None:
+        for sink in self.sinks:
+            sink.innovation(nis, t_log)
+
+    def end(self) -> None:
+        for sink in self.sinks:
+            sink.end()
+
+    def close(self) -> None:
+        """Close the sinks that have a ``close``."""
+        for sink in self.sinks:
+            close = getattr(sink, "close", None)
+            if close is not None:
+                close()
+
+
+def wall_clock_origin_ns() -> int:
+    """The wall clock now (Unix ns), floored to a whole second: the clock origin a
+    recording gives a source whose clock starts at 0 (a simulation)."""
+    return time.time_ns() // 1_000_000_000 * 1_000_000_000
+
+
+class WriterSink:
+    """Writes each episode through a :class:`~hardware.bag.writer.MessageWriter` that a
+    subclass opens (:meth:`_open`): a bag (:class:`BagSink`), a live view
+    (:class:`hardware.viewer.FoxgloveSink`).
+
+    Each estimate is written with what viewers draw (``/tf``, ``/tensegrity/markers``)
+    where ``markers`` is on: the latest ground truth, the estimate, and the goal point
+    that :attr:`goal` gives (the env sets it to its task's ``goal_position``).
 
     Args:
-        folder: where the bags go; created if missing. Existing episodes are not
-            overwritten: numbering continues after the highest one present.
-        run_info: written into every bag's ``/tensegrity/run_info`` (the episode number
-            and control period are added).
-        flush_period: seconds of recorded time between flushes to disk.
+        run_info: written into every episode's ``/tensegrity/run_info`` (the episode
+            number and control period are added).
+        markers: write ``/tf`` and ``/tensegrity/markers`` at the control rate.
+        wall_clock: stamp a source whose clock starts at 0 (a simulation,
+            ``clock_origin_ns`` 0) from the wall clock at the start of each episode,
+            floored to a second, plus its time; False keeps stamps from 0. A source
+            with a clock of its own (a robot, a replayed bag) keeps its stamps.
     """
 
     def __init__(
         self,
-        folder: str | Path,
         run_info: Mapping[str, Any] | None = None,
         *,
-        flush_period: float = 1.0,
+        markers: bool = True,
+        wall_clock: bool = True,
     ) -> None:
-        self.folder = Path(folder)
-        self.folder.mkdir(parents=True, exist_ok=True)
         self.run_info = dict(run_info or {})
-        self.flush_period = flush_period
-        self.writer: BagWriter | None = None
-        self.paths: list[Path] = []
-        taken = [int(p.name[8:]) for p in self.folder.glob("episode_*") if p.name[8:].isdigit()]
-        self._next = max(taken, default=-1) + 1
+        self.markers = markers
+        self.wall_clock = wall_clock
+        self.goal: Callable[[], NDArray[np.float64] | None] | None = None
+        """The goal point (m), (3,), drawn with each estimate; None: no goal."""
+        self.writer: MessageWriter | None = None
+        self.episodes = 0
+        self._truth: GroundTruth | None = None
+
+    def _open(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        info: dict[str, Any],
+        clock_origin_ns: int,
+    ) -> MessageWriter:
+        """The writer of a new episode (its number is ``info["episode"]``)."""
+        raise NotImplementedError
+
+    def _episode_number(self) -> int:
+        return self.episodes
 
     def begin(
         self,
@@ -297,41 +399,107 @@ class BagSink:
         clock_origin_ns: int = 0,
         episode_info: Mapping[str, Any] | None = None,
     ) -> None:
-        """Opens the episode's bag, its stamps ``clock_origin_ns`` plus sample times."""
+        """Opens the episode's writer, its stamps ``clock_origin_ns`` plus sample times
+        (see ``wall_clock``)."""
+        self.end()
+        if self.wall_clock and not clock_origin_ns:
+            clock_origin_ns = wall_clock_origin_ns()
+        number = self._episode_number()
+        info = {**self.run_info, **(episode_info or {}), "episode": number,
+                "control_period": control_period}  # fmt: skip
+        self.writer = self._open(description, calibration, info, clock_origin_ns)
+        self.episodes += 1
+        self.writer.write_samples(start.samples)
+        self._truth = start.truth
+        if start.truth is not None:
+            self.writer.write_truth(start.truth)
+
+    def step(self, t_command: float, step: RecordedStep) -> None:
+        if self.writer is None:
+            raise RuntimeError(f"{type(self).__name__}.step before begin")
+        self.writer.write_command(t_command, step.command)
+        self.writer.write_samples(step.samples)
+        self._truth = step.truth
+        if step.truth is not None:
+            self.writer.write_truth(step.truth)
+
+    def estimate(self, estimate: Estimate, t_log: float) -> None:
+        if self.writer is None:
+            return
+        self.writer.write_estimate(estimate, t_log)
+        if self.markers:
+            goal = self.goal() if self.goal is not None else None
+            self.writer.write_scene(t_log, self._truth, estimate, goal)
+
+    def innovation(self, nis: float, t_log: float) -> None:
+        if self.writer is not None and self.markers:
+            self.writer.write_innovation(t_log, nis)
+
+    def end(self) -> None:
+        writer, self.writer = self.writer, None
+        if writer is not None:
+            self._close(writer)
+
+    def _close(self, writer: MessageWriter) -> None:
+        """The episode of ``writer`` is over."""
+
+
+class BagSink(WriterSink):
+    """Writes each episode to its own bag, ``<folder>/episode_000``, ``episode_001``, ...
+
+    Args:
+        folder: where the bags go; created if missing. Existing episodes are not
+            overwritten: numbering continues after the highest one present.
+        run_info, markers, wall_clock: as :class:`WriterSink` takes them.
+        flush_period: seconds of recorded time between flushes to disk.
+    """
+
+    def __init__(
+        self,
+        folder: str | Path,
+        run_info: Mapping[str, Any] | None = None,
+        *,
+        flush_period: float = 1.0,
+        markers: bool = True,
+        wall_clock: bool = True,
+    ) -> None:
+        super().__init__(run_info, markers=markers, wall_clock=wall_clock)
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.flush_period = flush_period
+        self.paths: list[Path] = []
+        taken = [int(p.name[8:]) for p in self.folder.glob("episode_*") if p.name[8:].isdigit()]
+        self._next = max(taken, default=-1) + 1
+
+    def _episode_number(self) -> int:
+        return self._next
+
+    def _open(
+        self,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        info: dict[str, Any],
+        clock_origin_ns: int,
+    ) -> MessageWriter:
         from hardware.bag.writer import BagWriter
 
-        self.end()
         path = self.folder / f"episode_{self._next:03d}"
-        info = {**self.run_info, **(episode_info or {}), "episode": self._next,
-                "control_period": control_period}  # fmt: skip
         self._next += 1
-        self.writer = BagWriter(
+        writer = BagWriter(
             path,
             description,
             calibration,
             info,
             flush_period=self.flush_period,
             clock_origin_ns=clock_origin_ns,
+            markers=self.markers,
         )
-        self.paths.append(self.writer.path)
-        self.writer.write_samples(start.samples)
-        if start.truth is not None:
-            self.writer.write_truth(start.truth)
+        self.paths.append(writer.path)
+        return writer
 
-    def step(self, t_command: float, step: RecordedStep) -> None:
-        if self.writer is None:
-            raise RuntimeError("BagSink.step before begin")
-        self.writer.write_command(t_command, step.command)
-        self.writer.write_samples(step.samples)
-        if step.truth is not None:
-            self.writer.write_truth(step.truth)
+    def _close(self, writer: MessageWriter) -> None:
+        from hardware.bag.writer import BagWriter
 
-    def estimate(self, estimate: Estimate, t_log: float) -> None:
-        if self.writer is not None:
-            self.writer.write_estimate(estimate, t_log)
-
-    def end(self) -> None:
-        writer, self.writer = self.writer, None
-        if writer is not None:
-            writer.close()
-            log.info("wrote %s (%d messages)", writer.path, writer.message_count)
+        assert isinstance(writer, BagWriter)
+        writer.close()
+        log.info("wrote %s (%d messages)", writer.path, writer.message_count)

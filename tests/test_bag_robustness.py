@@ -77,7 +77,8 @@ def record(
     Also the body of the recording subprocess that the SIGKILL test kills.
     """
     d = load_robot(ROBOT)
-    sink = BagSink(folder, {"note": "test"}, flush_period=flush_period)
+    # Stamped from 0, not the wall clock: the tests name log times as sample times.
+    sink = BagSink(folder, {"note": "test"}, flush_period=flush_period, wall_clock=False)
     backend = RecordingBackend(SimBackend(d), sink)
     rng = np.random.default_rng(seed)
     backend.reset(rng)
@@ -644,25 +645,28 @@ def test_a_bare_mcap_file_reads_like_its_folder(intact: Intact) -> None:
 
 
 def _tf_after_imu(topic: str, msgtype: str, ns: int, raw: bytes) -> Iterator[Message]:
+    """``/tf_static`` (no topic of ours: /tf is one, passed over uncounted) after each IMU
+    message of the red rod."""
     yield topic, msgtype, ns, raw
     if topic == "/red/imu/data_raw":
         store = m.typestore()
         tf = store.types["tf2_msgs/msg/TFMessage"](transforms=[])
-        yield "/tf", "tf2_msgs/msg/TFMessage", ns, bytes(store.serialize_cdr(tf, tf.__msgtype__))
+        raw_tf = bytes(store.serialize_cdr(tf, tf.__msgtype__))
+        yield "/tf_static", "tf2_msgs/msg/TFMessage", ns, raw_tf
 
 
 def test_a_topic_outside_the_table_is_skipped_and_counted(intact: Intact, tmp_path: Path) -> None:
     bag = _rewrite(intact.bag, tmp_path / "bag", _tf_after_imu)
     reader, periods = _read(bag)
     n_imu = sum(isinstance(s, ImuSample) and s.rod == 0 for p in periods for s in p.samples)
-    assert reader.unknown_topics == {"/tf": n_imu}
+    assert reader.unknown_topics == {"/tf_static": n_imu}
     assert reader.skipped == {"unknown_topic": n_imu}
     _same_periods(periods, intact.periods)
 
 
 def test_strict_refuses_a_topic_outside_the_table(intact: Intact, tmp_path: Path) -> None:
     bag = _rewrite(intact.bag, tmp_path / "bag", _tf_after_imu)
-    with pytest.raises(BagError, match="/tf"):
+    with pytest.raises(BagError, match="/tf_static"):
         _read(bag, strict=True)
 
 
@@ -754,8 +758,8 @@ def _drop(dropped: str) -> Any:
 def test_no_robot_description_gives_bag_error_unless_the_robot_is_given(
     intact: Intact, tmp_path: Path
 ) -> None:
-    bag = _rewrite(intact.bag, tmp_path / "bag", _drop("/robot_description"))
-    with pytest.raises(BagError, match="no /robot_description") as err:
+    bag = _rewrite(intact.bag, tmp_path / "bag", _drop(m.DESCRIPTION_YAML_TOPIC))
+    with pytest.raises(BagError, match=f"no {m.DESCRIPTION_YAML_TOPIC}") as err:
         _read(bag)
     assert str(bag) in str(err.value)
     reader, periods = _read(bag, description=load_robot(ROBOT))
@@ -1256,8 +1260,8 @@ def test_a_bad_robot_description_gives_bag_error(intact: Intact, tmp_path: Path,
     def edit(msg: Any) -> None:
         msg.data = text
 
-    bag = _rewrite(intact.bag, tmp_path / "bag", EditNth("/robot_description", 1, edit))
-    with pytest.raises(BagError, match="/robot_description") as err:
+    bag = _rewrite(intact.bag, tmp_path / "bag", EditNth(m.DESCRIPTION_YAML_TOPIC, 1, edit))
+    with pytest.raises(BagError, match=m.DESCRIPTION_YAML_TOPIC) as err:
         _read(bag)
     assert str(bag) in str(err.value)
 

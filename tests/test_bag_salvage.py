@@ -143,7 +143,8 @@ def test_a_damaged_first_chunk_says_the_description_was_lost(
     bag = _bare_bag(
         tmp_path / "bag", _damage(source.mcap, 0), metadata=source.bag / "metadata.yaml"
     )
-    with pytest.raises(BagError, match=r"no /robot_description.*damaged chunk at byte"):
+    lost = r"no /tensegrity/robot_description_yaml.*damaged chunk at byte"
+    with pytest.raises(BagError, match=lost):
         _read(bag)
 
 
@@ -243,7 +244,7 @@ def test_estimate_of_one_bag_that_fails_is_one_line_and_exit_2(
     source = long_bag
     if case == "unreadable":
         bag = _bare_bag(tmp_path / "bag", _damage(source.mcap, 0)[: _chunks(source.mcap)[1][1]])
-        why = "no /robot_description"
+        why = "no /tensegrity/robot_description_yaml"
     else:
         bag = _without_start_uwb(source.bag, tmp_path / "bag")
         why = "UWB ranges"

@@ -48,7 +48,10 @@ _IMAGE = "sensor_msgs/msg/Image"
 def _record(folder: Path) -> Path:
     """A short run of random commands with camera frames: ``folder/episode_000``."""
     d = load_robot("three_bar")
-    backend = RecordingBackend(SimBackend(d, camera=True), BagSink(folder, {"env": ENV}))
+    # Stamped from 0 (not the wall clock, as a recording is by default), so that the
+    # copies below are moved by known amounts.
+    sink = BagSink(folder, {"env": ENV}, wall_clock=False)
+    backend = RecordingBackend(SimBackend(d, camera=True), sink)
     rng = np.random.default_rng(3)
     backend.reset(rng)
     lo, hi, _ = d.motor_limits

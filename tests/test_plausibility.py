@@ -240,10 +240,14 @@ def test_malformed_samples_are_counted_not_raised(robot: Any) -> None:
 
 
 def _millimetres_from(t0: float) -> Any:
-    """An edit of a UWB round message: its ranges times 1000 from ``t0`` (s) on."""
+    """An edit of a UWB round message: its ranges times 1000 from ``t0`` (s) on, counted
+    from the whole second of the first round (the bag's clock origin: a recording is
+    stamped from the wall clock)."""
+    origin: list[int] = []
 
     def edit(msg: Any) -> None:
-        if msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec >= t0:
+        origin[:] = origin or [msg.header.stamp.sec]
+        if msg.header.stamp.sec - origin[0] + 1e-9 * msg.header.stamp.nanosec >= t0:
             for r in msg.ranges:
                 r.range *= 1000.0
 

@@ -39,6 +39,7 @@ from tensegrity_gym.model.samples import (
     ns_to_seconds,
     seconds_to_ns,
 )
+from tensegrity_gym.model.urdf import robot_urdf
 
 if TYPE_CHECKING:
     from collections.abc import Mapping, Sequence
@@ -47,7 +48,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.samples import Sample
 
-__all__ = ["Encoded", "MessageError", "RobotCodec"]
+__all__ = ["Encoded", "MessageError", "RobotCodec", "description_yaml"]
 
 Encoded = tuple[str, bytes]
 """(topic, CDR bytes)."""
@@ -243,7 +244,8 @@ class RobotCodec:
         )
         run_text = yaml.safe_dump(dict(run_info), sort_keys=True)
         return [
-            (m.DESCRIPTION_TOPIC, self.serialize(string(data=dump_robot(d)), m.STRING)),
+            (m.DESCRIPTION_YAML_TOPIC, self.serialize(string(data=dump_robot(d)), m.STRING)),
+            (m.DESCRIPTION_TOPIC, self.serialize(string(data=robot_urdf(d)), m.STRING)),
             (m.RUN_INFO_TOPIC, self.serialize(string(data=run_text), m.STRING)),
             (m.CALIBRATION_TOPIC, self.serialize(calib, m.CALIBRATION)),
             (m.CAMERA_INFO_TOPIC, self.serialize(info, m.CAMERA_INFO)),
@@ -256,6 +258,11 @@ class RobotCodec:
         rod = int(getattr(sample, "rod", 0)) if kind.per_rod else 0
         payloads = kind.encode(self, sample)
         return [(self.topics.topic(kind.name, c, rod), raw) for c, raw in enumerate(payloads)]
+
+    def encode_float(self, topic: str, value: float) -> Encoded:
+        """A std_msgs/Float64 on ``topic``."""
+        msg = self.store.types[m.FLOAT64](data=float(value))
+        return (topic, self.serialize(msg, m.FLOAT64))
 
     def encode_command(self, t: float, targets: NDArray[np.float64]) -> Encoded:
         return (m.COMMAND_TOPIC, self.joint_state(t, self.actuated_names, targets))
@@ -278,15 +285,20 @@ class RobotCodec:
             ),
         ]
 
-    def encode_estimate(self, estimate: Estimate) -> list[Encoded]:
+    def estimate_rod_poses(self, estimate: Estimate) -> tuple[Vec, Vec]:
+        """The estimate's rod centres (m), (n_rods, 3), and orientations (x, y, z, w),
+        (n_rods, 4): tracked ones where the estimator has them, else from the axes."""
         x = estimate.node_positions
         rod_nodes = self.description.rod_nodes
         centres = rod_centres(x, rod_nodes)
         if estimate.rod_quaternions is not None:  # tracked about the axis too
-            quats = estimate.rod_quaternions
-        else:
-            with np.errstate(invalid="ignore", divide="ignore"):
-                quats = rod_quaternion_from_axis(rod_axes(x, rod_nodes))
+            return centres, estimate.rod_quaternions
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return centres, rod_quaternion_from_axis(rod_axes(x, rod_nodes))
+
+    def encode_estimate(self, estimate: Estimate) -> list[Encoded]:
+        x = estimate.node_positions
+        centres, quats = self.estimate_rod_poses(estimate)
         return [
             (m.ESTIMATE_POSES_TOPIC, self._pose_array(estimate.t, centres, quats)),
             (
@@ -520,6 +532,24 @@ class RobotCodec:
         if rgb.shape[:2] != depth.shape:
             raise MessageError(f"colour {rgb.shape[:2]} and depth {depth.shape} sizes differ")
         return RgbdFrame(self.seconds(ns), rgb, depth)
+
+
+def description_yaml(header: Mapping[str, Raw], store: Any) -> tuple[str, str] | None:
+    """(topic, YAML text) of the robot description among a bag's or a robot's header
+    messages (topic -> CDR bytes): its own topic, else ``/robot_description`` where an
+    older writer put the YAML there (a URDF there is not ours); None where neither has
+    it. Bytes that do not decode as a std_msgs/String raise :class:`MessageError`."""
+    for topic in (m.DESCRIPTION_YAML_TOPIC, m.DESCRIPTION_TOPIC):
+        raw = header.get(topic)
+        if raw is None:
+            continue
+        try:
+            text = str(store.deserialize_cdr(raw, m.STRING).data)
+        except Exception as err:  # rosbags raises assorted errors on bad bytes
+            raise MessageError(f"{topic} cannot be decoded: {err}") from None
+        if topic == m.DESCRIPTION_YAML_TOPIC or not text.lstrip().startswith("<"):
+            return topic, text
+    return None
 
 
 def run_info_from_text(text: str) -> dict[str, Any]:

@@ -3,10 +3,12 @@
 
 Standard types carry what they can (sensor_msgs/Imu, MagneticField, JointState, Image,
 CameraInfo, geometry_msgs/PoseArray, std_msgs/String); a few custom ``tensegrity_msgs``
-types carry the rest. The sensor topics are declared with their sample kinds
-(:mod:`hardware.bag.kinds`); their names come from the robot description (rod names), so
-a robot's own bag needs nothing of this package to be readable here. The README holds the
-same table for people who write bags themselves.
+types carry the rest. What ROS viewers draw (``/tf``, the robot as markers, a URDF on
+``/robot_description``) is written beside them (:data:`VIEW_TOPICS`); readers pass
+over it. The sensor topics are declared with their sample kinds
+(:mod:`hardware.bag.kinds`); their names come from the robot description (rod names),
+so a robot's own bag needs nothing of this package to be readable here. The README
+holds the same table for people who write bags themselves.
 
 ``sensor_msgs/Imu`` and ``sensor_msgs/MagneticField`` (most of a run's messages) are
 encoded and decoded by hand: ``struct`` on the CDR bytes is several times faster than
@@ -30,8 +32,13 @@ if TYPE_CHECKING:
 __all__ = [
     "COMMAND_TOPIC",
     "CUSTOM_MESSAGES",
+    "DESCRIPTION_YAML_TOPIC",
     "FIXED_TOPICS",
     "HEADER_TOPICS",
+    "MARKERS_TOPIC",
+    "NIS_TOPIC",
+    "TF_TOPIC",
+    "VIEW_TOPICS",
     "Raw",
     "decode_imu",
     "decode_magnetic_field",
@@ -63,8 +70,19 @@ UWB_RANGES = "tensegrity_msgs/msg/UwbRangeArray"
 CONTACTS = "tensegrity_msgs/msg/ContactFlags"
 STATE = "tensegrity_msgs/msg/TensegrityState"
 CALIBRATION = "tensegrity_msgs/msg/SensorCalibration"
+TF = "tf2_msgs/msg/TFMessage"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
+MARKER = "visualization_msgs/msg/Marker"
+FLOAT64 = "std_msgs/msg/Float64"
 
 DESCRIPTION_TOPIC = "/robot_description"
+"""By ROS convention a URDF (what RViz and Foxglove load); bags written before the URDF
+carry the YAML here, and readers still take it."""
+DESCRIPTION_YAML_TOPIC = "/tensegrity/robot_description_yaml"
+"""The robot description as this package reads it: YAML."""
+TF_TOPIC = "/tf"
+MARKERS_TOPIC = "/tensegrity/markers"
+NIS_TOPIC = "/estimate/nis"
 RUN_INFO_TOPIC = "/tensegrity/run_info"
 CALIBRATION_TOPIC = "/tensegrity/calibration"
 CAMERA_INFO_TOPIC = "/camera/camera_info"
@@ -74,13 +92,20 @@ TRUTH_STATE_TOPIC = "/ground_truth/state"
 ESTIMATE_POSES_TOPIC = "/estimate/rod_poses"
 ESTIMATE_STATE_TOPIC = "/estimate/state"
 
-HEADER_TOPICS = (DESCRIPTION_TOPIC, RUN_INFO_TOPIC, CALIBRATION_TOPIC, CAMERA_INFO_TOPIC)
+HEADER_TOPICS = (
+    DESCRIPTION_YAML_TOPIC,
+    DESCRIPTION_TOPIC,
+    RUN_INFO_TOPIC,
+    CALIBRATION_TOPIC,
+    CAMERA_INFO_TOPIC,
+)
 """What makes a bag (or a robot on the link) self-contained, read before anything else."""
 
 # topic -> (message type, what it carries): the topics that carry no sample. The sensor
 # topics are the sensor kinds' (hardware.bag.kinds), added per robot by its TopicTable.
 FIXED_TOPICS: dict[str, tuple[str, str]] = {
-    DESCRIPTION_TOPIC: (STRING, "the robot description, YAML (once, first)"),
+    DESCRIPTION_YAML_TOPIC: (STRING, "the robot description, YAML (once, first)"),
+    DESCRIPTION_TOPIC: (STRING, "the robot as a URDF for viewers (once, first)"),
     RUN_INFO_TOPIC: (STRING, "YAML: control_period (s), env, seed, policy, ..."),
     CALIBRATION_TOPIC: (CALIBRATION, "UWB anchors and offsets, camera pose"),
     CAMERA_INFO_TOPIC: (CAMERA_INFO, "camera intrinsics (k), width, height"),
@@ -92,7 +117,14 @@ FIXED_TOPICS: dict[str, tuple[str, str]] = {
     TRUTH_STATE_TOPIC: (STATE, "true node positions and velocities, CoM, rest lengths"),
     ESTIMATE_POSES_TOPIC: (POSE_ARRAY, "estimated rod poses"),
     ESTIMATE_STATE_TOPIC: (STATE, "the estimator's output"),
+    TF_TOPIC: (TF, "rod frames under world: truth/ROD and estimate/ROD (optional)"),
+    MARKERS_TOPIC: (MARKER_ARRAY, "rods, endcaps, cables by tension, ghost, anchors, goal"),
+    NIS_TOPIC: (FLOAT64, "the estimator's latest normalised innovation squared per row"),
 }
+
+VIEW_TOPICS = frozenset({TF_TOPIC, MARKERS_TOPIC, NIS_TOPIC})
+"""What only viewers read: written at the control rate where a recording asks for it,
+passed over by every reader here."""
 
 
 @cache

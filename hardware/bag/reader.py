@@ -16,7 +16,9 @@ skip messages and :class:`LostSpan` keep the bag's own log times.
 Documented skips (counted in :attr:`BagReader.skipped`, logged once per kind and
 topic; ``strict=True`` raises instead):
 
-- ``unknown_topic``: a topic outside the topic table (``/tf``, ``/rosout``, ...);
+- ``unknown_topic``: a topic outside the topic table (``/rosout``, ...). What only
+  viewers read (``/tf``, ``/tensegrity/markers``: :data:`messages.VIEW_TOPICS`) is
+  passed over without a count;
 - ``duplicate``: a message whose header stamp equals the previous one on its topic;
 - ``out_of_order``: a header stamp earlier than the previous one on its topic;
 - ``undecodable``: bytes that do not decode, or values that do not fit the robot
@@ -53,7 +55,7 @@ from rosbags.rosbag2 import ReaderError
 
 from hardware.bag import messages as m
 from hardware.bag.assembler import SampleAssembler
-from hardware.bag.codec import MessageError, RobotCodec, run_info_from_text
+from hardware.bag.codec import MessageError, RobotCodec, description_yaml, run_info_from_text
 from hardware.bag.kinds import fixed_topic_types
 from hardware.bag.salvage import (
     MAGIC,
@@ -256,21 +258,23 @@ class BagReader:
     ) -> RobotDescription:
         if given is not None:
             return given
-        topic = m.DESCRIPTION_TOPIC
-        raw = header.get(topic)
-        if raw is None:
+        try:
+            found = description_yaml(header, m.typestore())
+        except MessageError as err:
+            raise BagError(f"{self.path}: {err}") from None
+        if found is None:
+            topics = f"{m.DESCRIPTION_YAML_TOPIC} (or YAML on {m.DESCRIPTION_TOPIC})"
+            lost = self._lost_note(m.DESCRIPTION_YAML_TOPIC) or self._lost_note(m.DESCRIPTION_TOPIC)
             raise BagError(
-                f"{self.path}: no {topic} message{self._lost_note(topic)}"
+                f"{self.path}: no {topics} message{lost}"
                 "; pass the robot (description=..., or --robot on the command line)"
             )
-        store = m.typestore()
+        topic, text = found
         try:
-            message: Any = store.deserialize_cdr(raw, m.STRING)
-            text = str(message.data)
             return loads_robot(text, f"{self.path}:{topic}")
         except DescriptionError as err:
             raise BagError(str(err)) from None
-        except Exception as err:
+        except Exception as err:  # YAML too deep to parse (RecursionError), ...
             raise BagError(f"{self.path}: {topic} cannot be decoded: {err}") from None
 
     def _check_types(self, types: dict[str, str]) -> None:
@@ -424,7 +428,7 @@ class BagReader:
     def periods(self) -> Iterator[BagPeriod]:
         """The start period, then one per command, in time order."""
         topics = self.codec.topics
-        known = set(topics.types) - set(m.HEADER_TOPICS)
+        known = set(topics.types) - set(m.HEADER_TOPICS) - m.VIEW_TOPICS
         self.skipped.clear()  # counts are of this pass
         self.unknown_topics.clear()
         self._counted.clear()

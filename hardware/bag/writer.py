@@ -10,6 +10,11 @@ bag properly (see ``agents/cli.py``).
 Times given to the writer are sample times (s from the source's clock origin); header
 stamps and log times are ``clock_origin_ns`` plus them, the robot's own clock, so a
 replayed bag recorded again has its original stamps.
+
+What ROS viewers draw (``/tf``, ``/tensegrity/markers``: :mod:`hardware.bag.scene`) is
+written by :meth:`MessageWriter.write_scene` where the writer was made with
+``markers=True``. :class:`MessageWriter` is the part every run's stream shares, the bag
+and the live view (:mod:`hardware.viewer`): the header first, then messages in time order.
 """
 
 from __future__ import annotations
@@ -19,7 +24,9 @@ from typing import TYPE_CHECKING, Any
 
 from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 
+from hardware.bag import messages as m
 from hardware.bag.codec import RobotCodec
+from hardware.bag.scene import RobotScene
 from tensegrity_gym.model.samples import seconds_to_ns
 
 if TYPE_CHECKING:
@@ -37,94 +44,76 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
-__all__ = ["BagWriter"]
+__all__ = ["BagWriter", "MessageWriter"]
 
 log = logging.getLogger(__name__)
 
 
-class BagWriter:
-    """Writes one run: the robot description, calibration and run info first, then
-    samples, commands, ground truth and estimates, each at its own time.
+class MessageWriter:
+    """Encodes one run's messages and hands them, in time order, to :meth:`_emit`: the
+    robot description, calibration and run info first, then samples, commands, ground
+    truth, estimates and (with ``markers``) what viewers draw, each at its own time.
 
     Messages must come in time order (the log time never goes back: a message older
     than the last one written is logged at the last one's time; its header keeps its own
-    stamp). Use as a context manager, or call :meth:`close`.
+    stamp).
 
     Args:
-        path: the bag folder to create; it must not exist.
         description, calibration: the robot and its sensor calibration.
         run_info: what else a reader needs or a person wants to know; must hold
             ``control_period`` (s). Written as YAML.
-        flush_period: seconds of recorded time between flushes to disk.
-        compress: compress each chunk with zstd (a quarter of the size, read as fast).
         clock_origin_ns: the robot-clock ns of sample time 0 (the source backend's
             ``clock_origin_ns``): stamps and log times are written as this plus ``t``.
+        markers: encode :meth:`write_scene`'s ``/tf`` and ``/tensegrity/markers``;
+            False: it writes nothing.
     """
 
     def __init__(
         self,
-        path: str | Path,
         description: RobotDescription,
         calibration: SensorCalibration,
         run_info: Mapping[str, Any],
         *,
-        flush_period: float = 1.0,
-        compress: bool = True,
         clock_origin_ns: int = 0,
+        markers: bool = True,
     ) -> None:
         if "control_period" not in run_info:
             raise ValueError("run_info must hold control_period (s)")
-        if not flush_period > 0:
-            raise ValueError(f"flush_period must be positive, got {flush_period}")
         self.codec = RobotCodec(description, clock_origin_ns)
         self._calibration = calibration
         self._run_info = dict(run_info)
-        self._flush_ns = seconds_to_ns(flush_period)
-        self._writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compress:  # zstd per MCAP chunk, which every MCAP reader understands
-            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self._writer.open()
-        self.path = self._writer.path
-        self._connections: dict[str, Connection] = {}
+        self.scene = RobotScene(self.codec, calibration.anchors) if markers else None
         self._last_ns: int | None = None
-        self._last_flush_ns = 0
         self.message_count = 0
-
-    def __enter__(self) -> BagWriter:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     @property
     def closed(self) -> bool:
-        return self._writer.storage is None
+        return False
+
+    def _emit(self, topic: str, ns: int, raw: bytes) -> None:
+        """Hand one message on, logged at ``ns`` (robot-clock ns)."""
+        raise NotImplementedError
+
+    def _opened(self, ns: int) -> None:
+        """The first message comes at ``ns`` (robot-clock ns)."""
+
+    def _written(self, ns: int) -> None:
+        """The messages up to ``ns`` (robot-clock ns) are handed on."""
 
     def _write(self, messages: Iterable[Encoded], t: float) -> None:
         if self.closed:
-            raise RuntimeError(f"the bag {self.path} is closed")
+            raise RuntimeError(f"{self} is closed")
         ns = self.codec.stamp_ns(t)
-        if self._last_ns is None:  # the header messages open the bag, at its first time
-            self._last_ns = self._last_flush_ns = ns
+        if self._last_ns is None:  # the header messages open the run, at its first time
+            self._last_ns = ns
+            self._opened(ns)
             self._write(self.codec.encode_header(self._calibration, self._run_info, t), t)
         ns = max(ns, self._last_ns)
-        types = self.codec.topics.types
         for topic, raw in messages:
-            conn = self._connections.get(topic)
-            if conn is None:
-                conn = self._writer.add_connection(topic, types[topic], typestore=self.codec.store)
-                self._connections[topic] = conn
-            self._writer.write(conn, ns, raw)
+            self._emit(topic, ns, raw)
             self.message_count += 1
         self._last_ns = ns
-        if ns - self._last_flush_ns >= self._flush_ns:
-            self.flush()
-            self._last_flush_ns = ns
+        self._written(ns)
 
     def write_samples(self, samples: Iterable[Sample]) -> None:
         """Raw samples, each at its own time (in time order)."""
@@ -141,6 +130,98 @@ class BagWriter:
     def write_estimate(self, estimate: Estimate, t: float | None = None) -> None:
         """An estimator's output, logged at ``t`` (default: its own time)."""
         self._write(self.codec.encode_estimate(estimate), estimate.t if t is None else t)
+
+    def write_scene(
+        self,
+        t: float,
+        truth: GroundTruth | None,
+        estimate: Estimate | None,
+        goal: NDArray[float64] | None = None,
+    ) -> None:
+        """``/tf`` and ``/tensegrity/markers`` at ``t`` (s) (see :mod:`hardware.bag.scene`):
+        the truth and the estimate where given, the goal point (m), (3,), where there is
+        one. Nothing where the writer was made without markers."""
+        if self.scene is not None:
+            self._write(self.scene.encode(t, truth, estimate, goal), t)
+
+    def write_innovation(self, t: float, nis: float) -> None:
+        """The estimator's normalised innovation squared per measurement row at ``t``
+        (s), on ``/estimate/nis``, with what viewers draw (nothing without markers)."""
+        if self.scene is not None:
+            self._write([self.codec.encode_float(m.NIS_TOPIC, nis)], t)
+
+
+class BagWriter(MessageWriter):
+    """Writes one run to a bag (see :class:`MessageWriter`). Use as a context manager,
+    or call :meth:`close`.
+
+    Args:
+        path: the bag folder to create; it must not exist.
+        description, calibration, run_info, clock_origin_ns, markers: as
+            :class:`MessageWriter` takes them.
+        flush_period: seconds of recorded time between flushes to disk.
+        compress: compress each chunk with zstd (a quarter of the size, read as fast).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        run_info: Mapping[str, Any],
+        *,
+        flush_period: float = 1.0,
+        compress: bool = True,
+        clock_origin_ns: int = 0,
+        markers: bool = True,
+    ) -> None:
+        if not flush_period > 0:
+            raise ValueError(f"flush_period must be positive, got {flush_period}")
+        super().__init__(
+            description, calibration, run_info, clock_origin_ns=clock_origin_ns, markers=markers
+        )
+        self._flush_ns = seconds_to_ns(flush_period)
+        self._writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        if compress:  # zstd per MCAP chunk, which every MCAP reader understands
+            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+        self._writer.open()
+        self.path = self._writer.path
+        self._connections: dict[str, Connection] = {}
+        self._last_flush_ns = 0
+
+    def __str__(self) -> str:
+        return f"the bag {self.path}"
+
+    def __enter__(self) -> BagWriter:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._writer.storage is None
+
+    def _emit(self, topic: str, ns: int, raw: bytes) -> None:
+        conn = self._connections.get(topic)
+        if conn is None:
+            msgtype = self.codec.topics.types[topic]
+            conn = self._writer.add_connection(topic, msgtype, typestore=self.codec.store)
+            self._connections[topic] = conn
+        self._writer.write(conn, ns, raw)
+
+    def _opened(self, ns: int) -> None:
+        self._last_flush_ns = ns
+
+    def _written(self, ns: int) -> None:
+        if ns - self._last_flush_ns >= self._flush_ns:
+            self.flush()
+            self._last_flush_ns = ns
 
     def flush(self) -> None:
         """Close the pending MCAP chunk and hand it to the operating system."""

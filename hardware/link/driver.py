@@ -42,7 +42,7 @@ import numpy as np
 
 from hardware.bag import messages as m
 from hardware.bag.assembler import SampleAssembler
-from hardware.bag.codec import MessageError, RobotCodec
+from hardware.bag.codec import MessageError, RobotCodec, description_yaml
 from hardware.link.safety import CommandLimiter, check_fields
 from hardware.link.wire import (
     COMMAND_TOPIC,
@@ -400,19 +400,18 @@ class ZenohDriver:
         return self.uwb_calibration.applied_to(self._calibration)
 
     def _read_header(self) -> None:
-        raw = self._header.get(m.DESCRIPTION_TOPIC)
-        if raw is not None:
-            try:
-                text = self.codec.deserialize(raw, m.STRING).data
-                theirs = loads_robot(text, f"{self.address}:{m.DESCRIPTION_TOPIC}")
-            except (MessageError, DescriptionError) as err:
-                why = f"bad {m.DESCRIPTION_TOPIC}: {err}"
-                raise LinkError(f"robot at {self.address}: {why}") from None
-            if theirs.name != self.description.name or theirs.n_cables != self.description.n_cables:
-                raise LinkError(
-                    f"the robot at {self.address} is {theirs.name!r} ({theirs.n_cables} cables); "
-                    f"this env is for {self.description.name!r}"
-                )
+        try:  # the YAML's own topic, or an older robot's YAML on /robot_description
+            found = description_yaml(self._header, self.codec.store)
+            theirs = None if found is None else loads_robot(found[1], f"{self.address}:{found[0]}")
+        except (MessageError, DescriptionError) as err:
+            raise LinkError(f"robot at {self.address}: bad robot description: {err}") from None
+        if theirs is not None and (
+            theirs.name != self.description.name or theirs.n_cables != self.description.n_cables
+        ):
+            raise LinkError(
+                f"the robot at {self.address} is {theirs.name!r} ({theirs.n_cables} cables); "
+                f"this env is for {self.description.name!r}"
+            )
         if self._given_calibration is None:
             try:
                 self._calibration = self.codec.decode_calibration(

@@ -7,8 +7,10 @@ an optional namespace prefix (``/rod_0/imu/data_raw`` -> ``rod_0/imu/data_raw``,
 the message, encapsulation header included, exactly what the bridge forwards, so a
 ROS 2 robot reaches the env through the bridge with no code of ours on it.
 
-Robot to env: every sensor topic, ``/robot_description``, ``/tensegrity/calibration``
-and ``/camera/camera_info`` (republished about once a second, the way a latched topic
+Robot to env: every sensor topic, ``/tensegrity/robot_description_yaml`` (the robot
+description the env checks; an older robot's YAML on ``/robot_description`` is taken
+too), ``/robot_description`` (the URDF, for viewers), ``/tensegrity/calibration`` and
+``/camera/camera_info`` (republished about once a second, the way a latched topic
 reaches late joiners over the bridge), and optionally ground truth from motion capture.
 Env to robot: ``/commands/rest_length_targets`` and ``/tensegrity/heartbeat``.
 """

@@ -20,6 +20,7 @@ from tensegrity_gym.sim.world import has_display
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from hardware.recording import WriterSink
     from tensegrity_gym.model.registry import TaskSpec
 
 
@@ -205,6 +206,8 @@ def make_env(
     calibration: str | Path = "estimated",
     world_seed: int = 0,
     randomization: str | Randomization | None = None,
+    viewer_port: int = 8765,
+    viewer_speed: float = 1.0,
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -224,8 +227,12 @@ def make_env(
             object. The driver's robot must be this env's.
         record_dir: write every episode to a ROS 2 bag in this folder (``episode_000``,
             ...): samples, commands, ground truth and estimates.
-        render_mode: ``None``, ``"rgb_array"`` or ``"human"`` (PyBullet's window;
-            without a display a warning, and none).
+        render_mode: ``None``, ``"rgb_array"``, ``"human"`` (PyBullet's window;
+            without a display a warning, and none) or ``"foxglove"`` (a live view: a
+            Foxglove WebSocket server streams the run's topics, as a bag holds them,
+            until the env closes; needs ``pip install tensegrity-gym[viewer]``).
+        viewer_port, viewer_speed: the live view's port (0: a free one) and its pace
+            (run time per wall-clock time; 0: as fast as the run goes).
         spawn_radius: the start position is drawn within this radius (m).
         control_period, time_step: seconds per env step and per physics step.
         terrain: the simulator's ground (:mod:`tensegrity_gym.sim.terrain`): ``"flat"``
@@ -281,8 +288,9 @@ def make_env(
             backend, calibration, world_seed=world_seed, control_period=control_period,
             time_step=time_step,
         )  # fmt: skip
+        viewer = {"port": viewer_port, "speed": viewer_speed}
         return _assemble(backend, estimator, spec, description, task_arguments, record_dir,
-                         render_mode, source)  # fmt: skip
+                         render_mode, source, viewer)  # fmt: skip
     except BaseException:
         backend.close()  # nothing half made stays open: a simulator, a link session
         raise
@@ -297,32 +305,58 @@ def _assemble(
     record_dir: str | Path | None,
     render_mode: str | None,
     calibration: str,
+    viewer: dict[str, Any],
 ) -> TensegrityEnv:
-    """The env around a made ``backend``: its estimator, recording and task."""
+    """The env around a made ``backend``: its estimator, recording, live view and task."""
     est_name = estimator if isinstance(estimator, str) else None
     est = make_estimator(estimator, backend)
     if hasattr(backend, "camera"):  # the simulator renders frames only when they are used
         backend.camera = est.needs_camera
-    if record_dir is not None:
-        from hardware.recording import BagSink, RecordingBackend, RecordingEstimator
+    run_info: dict[str, Any] = {
+        "robot": description.name,
+        "estimator": est_name or type(estimator).__name__,
+        "calibration": calibration,
+    }
+    sinks = _sinks(backend, run_info, record_dir, render_mode == "foxglove", viewer)
+    if sinks:
+        from hardware.recording import FanOutSink, RecordingBackend, RecordingEstimator
 
-        run_info: dict[str, Any] = {
-            "robot": description.name,
-            "estimator": est_name or type(estimator).__name__,
-            "calibration": calibration,
-        }
-        truth = getattr(backend, "true_uwb", None)
-        if truth is not None:  # the simulator's, beside the calibration the bag carries
-            run_info["true_calibration"] = {
-                "anchors": truth.anchors.tolist(),
-                "uwb_offsets": truth.uwb_offsets.tolist(),
-            }
-        sink = BagSink(record_dir, run_info)
+        sink = sinks[0] if len(sinks) == 1 else FanOutSink(sinks)
         backend = RecordingBackend(backend, sink)
         est = RecordingEstimator(est, sink, backend)
     # A replayed bag's own control period.
     made = spec.create(description, backend.control_period, task_arguments)
+    for s in sinks:  # the markers draw the task's goal where it has one
+        s.goal = getattr(made, "goal_position", None)
     return TensegrityEnv(backend, est, made, render_mode=render_mode, calibration=calibration)
+
+
+def _sinks(
+    backend: Backend,
+    run_info: dict[str, Any],
+    record_dir: str | Path | None,
+    live: bool,
+    viewer: dict[str, Any],
+) -> list[WriterSink]:
+    """Where the run goes besides the env: a folder of bags, a Foxglove live view."""
+    if record_dir is None and not live:
+        return []
+    from hardware.recording import BagSink
+
+    truth = getattr(backend, "true_uwb", None)
+    if truth is not None:  # the simulator's, beside the calibration the bag carries
+        run_info["true_calibration"] = {
+            "anchors": truth.anchors.tolist(),
+            "uwb_offsets": truth.uwb_offsets.tolist(),
+        }
+    sinks: list[WriterSink] = []
+    if record_dir is not None:
+        sinks.append(BagSink(record_dir, run_info))
+    if live:
+        from hardware.viewer import FoxgloveSink
+
+        sinks.append(FoxgloveSink(run_info=run_info, **viewer))
+    return sinks
 
 
 def make_roll_env(

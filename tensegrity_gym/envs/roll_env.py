@@ -50,7 +50,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     ``estimation_error`` (CoM distance, m), and the task's own entries (:meth:`Task.info`).
     """
 
-    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 10}  # noqa: RUF012
+    metadata = {"render_modes": ["human", "rgb_array", "foxglove"], "render_fps": 10}  # noqa: RUF012
 
     def __init__(
         self,
@@ -270,7 +270,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode == "rgb_array":
             w, h = self.render_size
             return self.backend.render(w, h)
-        return None  # "human": PyBullet's own window shows the scene
+        return None  # "human": PyBullet's window; "foxglove": the live view streams it
 
     def close(self) -> None:
         """Close the backend; later resets and steps raise ``RuntimeError`` (closing

@@ -194,6 +194,10 @@ class GoToTask(GoalFrameTask):
         how much closer the CoM is to the current goal than when it was drawn."""
         return self._covered + self._initial - self.distance(estimate)
 
+    def goal_position(self) -> NDArray[np.float64]:
+        """The current goal on the ground (m, world frame), (3,), for viewers."""
+        return np.array([self.goal[0], self.goal[1], 0.0])
+
     def info(self, estimate: Estimate) -> dict[str, Any]:
         """``goal`` (m, world frame, (2,)), ``distance_to_goal`` (m), ``goals_reached``."""
         return {

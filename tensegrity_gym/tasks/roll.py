@@ -135,6 +135,13 @@ class RollTask(GoalFrameTask):
         step = float((estimate.com[:2] - previous.com[:2]) @ self.direction)
         return self.progress_weight * step / self.scale - self.control_cost(action)
 
+    def goal_position(self) -> NDArray[np.float64]:
+        """For viewers (m, world frame), (3,): the point on the ground the episode's
+        goal distance ahead of the start along the heading, or 1 m ahead where the
+        episode has no goal distance."""
+        ahead = self.episode_goal_distance if self.episode_goal_distance is not None else 1.0
+        return np.array([*(self.start[:2] + ahead * self.direction), 0.0])
+
     def terminated(self, estimate: Estimate) -> bool:
         goal = self.episode_goal_distance
         return goal is not None and self.progress(estimate) >= goal

@@ -1,0 +1,370 @@
+"""What viewers see (issue 19): /tf and markers in bags, the URDF on /robot_description,
+old bags with YAML there, wall-clock stamps, and the live Foxglove view.
+
+Bags are decoded with Foxglove's own libraries (``mcap`` and ``mcap-ros2-support``),
+not ours, and compared frame by frame with the recorded states. The live view is
+checked with a WebSocket client speaking the Foxglove protocol
+(``foxglove.websocket.v1``).
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import struct
+import sys
+import threading
+import time
+import xml.etree.ElementTree as ET
+from functools import cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.records import Schema
+from mcap_ros2.decoder import DecoderFactory
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+
+import tensegrity_gym  # noqa: F401  (registers the envs)
+from agents.cli import main as cli_main
+from hardware.bag import BagReader
+from hardware.bag import messages as m
+from hardware.link.process import free_port
+from hardware.viewer import INSTALL_HINT, ViewerError
+from tensegrity_gym.model.description import PRESETS, dump_robot, load_robot
+from tensegrity_gym.model.urdf import robot_urdf
+
+if TYPE_CHECKING:
+    from collections.abc import Iterator
+
+ENV = "tensegrity_gym/ThreeBarRoll-v0"
+STEPS = 12
+PERIOD_NS = 100_000_000  # the env's control period, 0.1 s
+
+
+@cache
+def _recorded(root: str) -> Path:
+    """One episode of random actions recorded by the env, markers on (the default)."""
+    before = time.time_ns()
+    env = gym.make(ENV, record_dir=root, max_episode_steps=STEPS)
+    env.reset(seed=1)
+    rng = np.random.default_rng(1)
+    done = False
+    while not done:
+        *_, terminated, truncated, _ = env.step(rng.uniform(-1, 1, env.action_space.shape))
+        done = terminated or truncated
+    env.close()
+    (Path(root) / "before_ns").write_text(str(before))
+    return Path(root) / "episode_000"
+
+
+@pytest.fixture(scope="module")
+def bag(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return _recorded(str(tmp_path_factory.mktemp("viewer")))
+
+
+def _decoded(bag: Path) -> Iterator[tuple[str, int, Any]]:
+    """(topic, log time ns, message) of every message, decoded by Foxglove's decoder."""
+    [mcap] = bag.glob("*.mcap")
+    with mcap.open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, message, decoded in reader.iter_decoded_messages():
+            yield channel.topic, message.log_time, decoded
+
+
+def _stamp(msg: Any) -> int:
+    return int(msg.header.stamp.sec) * 10**9 + int(msg.header.stamp.nanosec)
+
+
+def _xyz(p: Any) -> list[float]:
+    return [p.x, p.y, p.z]
+
+
+def _xyzw(q: Any) -> list[float]:
+    return [q.x, q.y, q.z, q.w]
+
+
+def test_tf_and_markers_decode_with_foxglove_and_match_the_recorded_states(bag: Path) -> None:
+    by_topic: dict[str, list[tuple[int, Any]]] = {}
+    for topic, ns, msg in _decoded(bag):
+        by_topic.setdefault(topic, []).append((ns, msg))
+    poses = {
+        tree: {_stamp(msg): msg for _, msg in by_topic[f"/{src}/rod_poses"]}
+        for tree, src in (("truth", "ground_truth"), ("estimate", "estimate"))
+    }
+    states = {_stamp(msg): msg for _, msg in by_topic["/ground_truth/state"]}
+    tfs, markers = by_topic[m.TF_TOPIC], by_topic[m.MARKERS_TOPIC]
+    assert len(tfs) == len(markers) == STEPS + 1  # the reset's estimate, then one a step
+    nis = [msg.data for _, msg in by_topic[m.NIS_TOPIC]]  # the UKF's innovations
+    assert len(nis) >= STEPS - 1 and np.all(np.isfinite(nis)) and min(nis) >= 0.0
+    assert np.all(np.diff([ns for ns, _ in tfs]) == PERIOD_NS)  # at the control rate
+    rods = [r.name for r in load_robot("three_bar").rods]
+    for (_, tf), (_, array) in zip(tfs, markers, strict=True):
+        frames = {t.child_frame_id: t for t in tf.transforms}
+        assert sorted(frames) == sorted(f"{tree}/{r}" for tree in poses for r in rods)
+        for tree, recorded in poses.items():
+            for k, rod in enumerate(rods):
+                t = frames[f"{tree}/{rod}"]
+                assert t.header.frame_id == "world"
+                pose = recorded[_stamp(t)].poses[k]  # the rod poses of that instant
+                assert _xyz(t.transform.translation) == _xyz(pose.position)
+                assert _xyzw(t.transform.rotation) == _xyzw(pose.orientation)
+        _check_markers(array, frames, states[_stamp(frames[f"truth/{rods[0]}"])], rods)
+
+
+def _check_markers(array: Any, frames: dict[str, Any], state: Any, rods: list[str]) -> None:
+    """One MarkerArray against the TF of its instant and the true state."""
+    d = load_robot("three_bar")
+    first, *markers = array.markers
+    assert first.action == 3  # DELETEALL, then the scene
+    by_ns: dict[str, list[Any]] = {}
+    for marker in markers:
+        assert marker.header.frame_id == "world"
+        by_ns.setdefault(marker.ns, []).append(marker)
+    assert sorted(by_ns) == sorted(
+        [
+            f"{tree}/{part}"
+            for tree in ("truth", "estimate")
+            for part in ("rods", "endcaps", "cables")
+        ]
+        + ["anchors", "goal"]
+    )
+    for tree, alpha in (("truth", 1.0), ("estimate", 0.35)):
+        for k, cylinder in enumerate(by_ns[f"{tree}/rods"]):
+            assert cylinder.type == 3 and cylinder.color.a == pytest.approx(alpha)
+            assert _xyz(cylinder.pose.position) == _xyz(
+                frames[f"{tree}/{rods[k]}"].transform.translation
+            )
+            assert cylinder.scale.z == pytest.approx(d.rods[k].length)
+            assert [cylinder.color.r, cylinder.color.g, cylinder.color.b] == pytest.approx(
+                d.rods[k].color[:3]
+            )
+        [lines] = by_ns[f"{tree}/cables"]
+        assert lines.type == 5 and len(lines.points) == len(lines.colors) == 2 * d.n_cables
+    spheres = by_ns["truth/endcaps"]
+    assert [_xyz(s.pose.position) for s in spheres] == [_xyz(p) for p in state.node_positions]
+    assert len(by_ns["anchors"]) == len(d.anchors)
+
+
+def test_the_urdf_names_one_link_per_rod_and_is_the_bags_robot_description(bag: Path) -> None:
+    for name in PRESETS:
+        d = load_robot(name)
+        root = ET.fromstring(robot_urdf(d))
+        links = [link.get("name") for link in root.iter("link")]
+        assert links == ["world", *(r.name for r in d.rods)]
+        joints = list(root.iter("joint"))
+        assert [j.get("type") for j in joints] == ["floating"] * d.n_rods
+        assert [j.find("parent").get("link") for j in joints] == ["world"] * d.n_rods  # type: ignore[union-attr]
+        for link, rod in zip(root.iter("link"), (None, *d.rods), strict=False):
+            if rod is not None:
+                shapes = [v.find("geometry")[0].tag for v in link.iter("visual")]  # type: ignore[index]
+                assert shapes == ["cylinder", "sphere", "sphere"]
+    text = {t: msg.data for t, _, msg in _decoded(bag) if t in m.HEADER_TOPICS[:2]}
+    assert text[m.DESCRIPTION_TOPIC] == robot_urdf(load_robot("three_bar"))
+    assert text[m.DESCRIPTION_YAML_TOPIC] == dump_robot(load_robot("three_bar"))
+
+
+def _old_style(src: Path, dst: Path) -> Path:
+    """``src`` as bags were written before the URDF: YAML on /robot_description, no
+    YAML topic of its own, no /tf or markers."""
+    store = m.typestore()
+    with Reader(src) as reader, Writer(dst, version=9, storage_plugin=StoragePlugin.MCAP) as out:
+        conns: dict[str, Any] = {}
+        for conn, ns, raw in reader.messages():
+            topic = conn.topic
+            if topic in (m.DESCRIPTION_TOPIC, *m.VIEW_TOPICS):
+                continue
+            if topic == m.DESCRIPTION_YAML_TOPIC:
+                topic = m.DESCRIPTION_TOPIC
+            if topic not in conns:
+                conns[topic] = out.add_connection(topic, conn.msgtype, typestore=store)
+            out.write(conns[topic], ns, raw)
+    return dst
+
+
+def test_old_bags_with_yaml_on_robot_description_read_as_before(bag: Path, tmp_path: Path) -> None:
+    old = _old_style(bag, tmp_path / "old")
+    with BagReader(old) as reader_old, BagReader(bag) as reader_new:
+        assert m.DESCRIPTION_YAML_TOPIC not in reader_old.topics
+        assert reader_old.description == reader_new.description == load_robot("three_bar")
+        a, b = list(reader_old.periods()), list(reader_new.periods())
+        assert not reader_old.skipped and not reader_new.skipped  # /tf, markers: no skips
+        assert not reader_new.unknown_topics
+    assert [len(p.samples) for p in a] == [len(p.samples) for p in b]
+    assert all(np.array_equal(p.truth.node_positions, q.truth.node_positions)  # type: ignore[union-attr]
+               for p, q in zip(a, b, strict=True))  # fmt: skip
+
+
+def test_a_simulated_run_is_stamped_from_the_wall_clock(bag: Path) -> None:
+    before = int((bag.parent / "before_ns").read_text()) // 10**9 * 10**9
+    with BagReader(bag) as reader:
+        assert before <= reader.clock_origin_ns <= time.time_ns()
+        [start, *_] = reader.periods()
+        assert 0.0 <= start.samples[0].t < 1.0  # sample times stay small
+
+
+def test_record_writes_markers_unless_told_not_to(tmp_path: Path) -> None:
+    for flag, expected in (("--markers", True), ("--no-markers", False)):
+        out = tmp_path / flag
+        args = ["record", "--policy", "random", "--steps", "2", "--out", str(out), flag]
+        assert cli_main(args) == 0
+        with BagReader(out / "episode_000") as reader:
+            assert (m.TF_TOPIC in reader.topics) is expected
+            assert (m.MARKERS_TOPIC in reader.topics) is expected
+            assert m.DESCRIPTION_TOPIC in reader.topics
+
+
+def test_foxglove_render_mode_without_the_sdk_is_a_one_line_error(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setitem(sys.modules, "foxglove", None)  # import foxglove fails
+    with pytest.raises(ViewerError, match=r"pip install tensegrity-gym\[viewer\]") as err:
+        gym.make(ENV, render_mode="foxglove", viewer_port=free_port())
+    assert str(err.value) == INSTALL_HINT
+
+
+# ---------------------------------------------------------------------- live view
+
+
+SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+"""The protocol's names: foxglove-sdk 0.30's server accepts only the second, whose
+messages (serverInfo, advertise, subscribe, messageData) are those of the first."""
+
+
+class _Client:
+    """A Foxglove WebSocket client: the server's info and channels, subscriptions,
+    and the messages of subscribed channels with their arrival (monotonic) times."""
+
+    def __init__(self, ws: Any) -> None:
+        self.ws = ws
+        assert ws.subprotocol in SUBPROTOCOLS
+        self.channels: dict[str, dict[str, Any]] = {}
+        self.info = json.loads(self.ws.recv(timeout=5))
+        self._subscribed: dict[int, str] = {}
+        self.received: list[tuple[str, int, float, bytes]] = []
+
+    def wait_for(self, topics: set[str], timeout: float = 10.0) -> None:
+        deadline = time.monotonic() + timeout
+        while not topics <= set(self.channels):
+            self._handle(self.ws.recv(timeout=max(0.01, deadline - time.monotonic())))
+
+    def subscribe(self, topics: list[str]) -> None:
+        subs = [{"id": k, "channelId": self.channels[t]["id"]} for k, t in enumerate(topics)]
+        self._subscribed = dict(enumerate(topics))
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+
+    def drain(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                self._handle(self.ws.recv(timeout=left))
+            except TimeoutError:
+                return
+
+    def _handle(self, frame: str | bytes) -> None:
+        if isinstance(frame, str):
+            msg = json.loads(frame)
+            if msg["op"] == "advertise":
+                self.channels.update({c["topic"]: c for c in msg["channels"]})
+            return
+        if frame[0] == 1:  # messageData: opcode, subscription id, log time, payload
+            sub, ns = struct.unpack_from("<IQ", frame, 1)
+            self.received.append((self._subscribed[sub], ns, time.monotonic(), frame[13:]))
+
+    def decoder(self, topic: str) -> Any:
+        c = self.channels[topic]
+        assert (c["encoding"], c["schemaEncoding"]) == ("cdr", "ros2msg")
+        schema = Schema(id=1, name=c["schemaName"], encoding="ros2msg", data=c["schema"].encode())
+        return DecoderFactory().decoder_for("cdr", schema)
+
+
+def _port_is_free(port: int) -> bool:
+    """Nothing listens on ``port``: a connection is refused, and a server may bind it
+    (SO_REUSEADDR, as servers do: the closed client's connection may be in TIME_WAIT)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        if s.connect_ex(("127.0.0.1", port)) == 0:
+            return False
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def test_the_live_view_streams_tf_and_markers_at_the_control_rate_and_stops_with_the_env() -> None:
+    from websockets.sync.client import connect
+
+    port = free_port()
+    env = gym.make(ENV, render_mode="foxglove", viewer_port=port, max_episode_steps=100)
+    try:
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=SUBPROTOCOLS) as ws:
+            client = _Client(ws)
+            _watch(env, client)
+    finally:
+        env.close()
+    assert _port_is_free(port)  # the server stopped with the env
+    _check_stream(client)
+
+
+STEPS_LIVE = 15
+
+
+def _watch(env: gym.Env[Any, Any], client: _Client) -> None:
+    """Reset, subscribe to /tf and the markers, and watch :data:`STEPS_LIVE` steps."""
+    assert client.info["op"] == "serverInfo"
+    env.reset(seed=0)  # the first messages advertise the channels
+    client.wait_for({m.TF_TOPIC, m.MARKERS_TOPIC, "/estimate/state", "/uwb/ranges"})
+    client.subscribe([m.TF_TOPIC, m.MARKERS_TOPIC])
+    client.drain(0.2)
+    client.received.clear()
+    thread = threading.Thread(
+        target=lambda: [env.step(env.action_space.sample()) for _ in range(STEPS_LIVE)]
+    )
+    thread.start()
+    client.drain(STEPS_LIVE * 0.1 + 1.0)
+    thread.join()
+
+
+def _check_stream(client: _Client) -> None:
+    """One TF and one marker message a step, 0.1 s apart in log time and (paced at run
+    time) roughly so on the wall clock, each decodable with its advertised schema."""
+    tf = [(ns, at, raw) for topic, ns, at, raw in client.received if topic == m.TF_TOPIC]
+    markers = [raw for topic, _, _, raw in client.received if topic == m.MARKERS_TOPIC]
+    assert len(tf) == len(markers) == STEPS_LIVE
+    assert np.all(np.diff([ns for ns, _, _ in tf]) == PERIOD_NS)
+    wall = tf[-1][1] - tf[0][1]
+    assert 0.5 * (STEPS_LIVE - 1) * 0.1 < wall < 3.0 * (STEPS_LIVE - 1) * 0.1
+    decode_tf, decode_markers = client.decoder(m.TF_TOPIC), client.decoder(m.MARKERS_TOPIC)
+    frames = {t.child_frame_id for t in decode_tf(tf[-1][2]).transforms}
+    rods = ("red", "green", "blue")
+    assert frames == {f"{tree}/{r}" for tree in ("truth", "estimate") for r in rods}
+    namespaces = {mk.ns for mk in decode_markers(markers[-1]).markers}
+    assert {"truth/rods", "estimate/rods", "truth/cables", "anchors", "goal"} <= namespaces
+
+
+def test_the_foxglove_layout_names_only_topics_a_recorded_bag_has(bag: Path) -> None:
+    """examples/foxglove_layout.json: every topic its panels and its script read is in the
+    robot's topic table (the script's output aside; the camera's only where an estimator
+    uses it), and its panels are the issue's."""
+    layout = json.loads(
+        (Path(__file__).parents[1] / "examples" / "foxglove_layout.json").read_text()
+    )
+    with BagReader(bag) as reader:
+        topics = set(reader.codec.topics.types)
+    [script] = layout["userNodes"].values()
+    output = "/studio_script/com_error"
+    assert f'output = "{output}"' in script["sourceCode"]
+    for name in ("/ground_truth/state", "/estimate/state"):
+        assert name in script["sourceCode"] and name in topics
+    panels = layout["configById"]
+    assert {p.split("!")[0] for p in panels} == {"3D", "Plot", "Image"}
+    read = {p["value"].split(".")[0] for c in panels.values() for p in c.get("paths", [])}
+    read |= {t for c in panels.values() for t in c.get("topics", {})}
+    read |= {c["imageMode"]["imageTopic"] for c in panels.values() if c.get("imageMode")}
+    assert read - {output} <= topics, read - topics
+    assert {m.MARKERS_TOPIC, m.NIS_TOPIC, output} <= read
