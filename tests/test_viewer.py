@@ -32,6 +32,7 @@ import tensegrity_gym  # noqa: F401  (registers the envs)
 from agents.cli import main as cli_main
 from hardware.bag import BagReader
 from hardware.bag import messages as m
+from hardware.bag.codec import description_yaml
 from hardware.link.process import free_port
 from hardware.viewer import INSTALL_HINT, ViewerError
 from tensegrity_gym.model.description import PRESETS, dump_robot, load_robot
@@ -217,6 +218,31 @@ def test_record_writes_markers_unless_told_not_to(tmp_path: Path) -> None:
             assert m.DESCRIPTION_TOPIC in reader.topics
 
 
+def test_the_yaml_is_found_on_its_topic_or_where_older_senders_put_it() -> None:
+    """The bag reader's and the robot link's one rule: the YAML's own topic first, else
+    YAML (not a URDF) on /robot_description."""
+    d = load_robot("three_bar")
+    store = m.typestore()
+
+    def string(text: str) -> bytes:
+        return bytes(store.serialize_cdr(store.types[m.STRING](data=text), m.STRING))
+
+    yaml_text, urdf = dump_robot(d), robot_urdf(d)
+    new = {m.DESCRIPTION_YAML_TOPIC: string(yaml_text), m.DESCRIPTION_TOPIC: string(urdf)}
+    assert description_yaml(new, store) == (m.DESCRIPTION_YAML_TOPIC, yaml_text)
+    old = {m.DESCRIPTION_TOPIC: string(yaml_text)}
+    assert description_yaml(old, store) == (m.DESCRIPTION_TOPIC, yaml_text)
+    assert description_yaml({m.DESCRIPTION_TOPIC: string(urdf)}, store) is None
+    assert description_yaml({}, store) is None
+
+
+def test_view_streams_an_episode_and_stops() -> None:
+    port = free_port()
+    args = ["view", "--port", str(port), "--episodes", "1", "--steps", "3", "--speed", "0"]
+    assert cli_main([*args, "--policy", "random"]) == 0
+    assert _port_is_free(port)
+
+
 def test_foxglove_render_mode_without_the_sdk_is_a_one_line_error(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -326,8 +352,10 @@ def _watch(env: gym.Env[Any, Any], client: _Client) -> None:
         target=lambda: [env.step(env.action_space.sample()) for _ in range(STEPS_LIVE)]
     )
     thread.start()
-    client.drain(STEPS_LIVE * 0.1 + 1.0)
+    while thread.is_alive():  # however slow the machine, every step's messages
+        client.drain(0.2)
     thread.join()
+    client.drain(0.5)
 
 
 def _check_stream(client: _Client) -> None:
@@ -337,8 +365,8 @@ def _check_stream(client: _Client) -> None:
     markers = [raw for topic, _, _, raw in client.received if topic == m.MARKERS_TOPIC]
     assert len(tf) == len(markers) == STEPS_LIVE
     assert np.all(np.diff([ns for ns, _, _ in tf]) == PERIOD_NS)
-    wall = tf[-1][1] - tf[0][1]
-    assert 0.5 * (STEPS_LIVE - 1) * 0.1 < wall < 3.0 * (STEPS_LIVE - 1) * 0.1
+    wall = tf[-1][1] - tf[0][1]  # paced: never faster than the run's time
+    assert 0.7 * (STEPS_LIVE - 1) * 0.1 < wall < 10.0 * (STEPS_LIVE - 1) * 0.1
     decode_tf, decode_markers = client.decoder(m.TF_TOPIC), client.decoder(m.MARKERS_TOPIC)
     frames = {t.child_frame_id for t in decode_tf(tf[-1][2]).transforms}
     rods = ("red", "green", "blue")
