@@ -217,19 +217,11 @@ def _member_forces_np(
     return np.asarray((tension / length)[..., None] * u)
 
 
-def _pair_forces_np(
-    x: NDArray[np.float64],
-    v: NDArray[np.float64],
-    by_node: NDArray[np.float64],
-    arrays: KernelArrays,
-) -> None:
-    """Adds the rod-rod contact forces to ``by_node`` (n, S, 3) (N), from positions and
-    velocities ``x``, ``v`` (S, n, 3)."""
-    _, _, _, _, _, smooth, contact_k, contact_c = arrays.constants
-    a0, a1, b0, b1 = arrays.pairs.T
-    reach, bound = arrays.pair_params[:, 0], arrays.pair_params[:, 1]
-    d1, d2 = x[:, a1] - x[:, a0], x[:, b1] - x[:, b0]
-    r = x[:, a0] - x[:, b0]
+def _segments_closest_np(
+    d1: NDArray[np.float64], d2: NDArray[np.float64], r: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(s, t) (S, P) of the closest points of segments a0 + s d1 and b0 + t d2, with
+    ``r`` = a0 - b0, all (S, P, 3) (estimation.ukf.spring_mass._segments_closest)."""
     aa, ee = np.einsum("spi,spi->sp", d1, d1), np.einsum("spi,spi->sp", d2, d2)
     f, cc = np.einsum("spi,spi->sp", d2, r), np.einsum("spi,spi->sp", d1, r)
     bb = np.einsum("spi,spi->sp", d1, d2)
@@ -245,18 +237,63 @@ def _pair_forces_np(
         np.clip(-cc / aa, 0.0, 1.0),
         np.where(t > 1.0, np.clip((bb - cc) / aa, 0.0, 1.0), s),
     )
-    t = np.clip(t, 0.0, 1.0)
-    gap = r + s[..., None] * d1 - t[..., None] * d2
+    return s, np.clip(t, 0.0, 1.0)
+
+
+def _deepest_touch_np(
+    x: NDArray[np.float64], arrays: KernelArrays
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """(depth (m), s, t), each (S, P), of every rod pair's deepest overlap, tried in the
+    kernel's order (estimation.ukf.spring_mass._deepest_touch)."""
+    a0, a1, b0, b1 = arrays.pairs.T
+    pa, pb = x[:, a0], x[:, b0]
+    d1, d2 = x[:, a1] - pa, x[:, b1] - pb
+
+    def on(
+        p: NDArray[np.float64], q0: NDArray[np.float64], d: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """t (S, P) of the point of segment q0 + t d closest to p."""
+        t = np.einsum("spi,spi->sp", p - q0, d) / np.einsum("spi,spi->sp", d, d)
+        return np.asarray(np.clip(t, 0.0, 1.0))
+
+    s, t = _segments_closest_np(d1, d2, pa - pb)
+    ones = np.ones_like(s)
+    tried = [(s, t, 0)]  # (s, t, column of pair_params)
+    for end in (0.0, 1.0):
+        tried.append((end * ones, on(pa + end * d1, pb, d2), 1))
+        tried += [(end * ones, other * ones, 3) for other in (0.0, 1.0)]
+    tried += [(on(pb + end * d2, pa, d1), end * ones, 2) for end in (0.0, 1.0)]
+    ss = np.stack([c[0] for c in tried])
+    ts = np.stack([c[1] for c in tried])
+    gap = pa + ss[..., None] * d1 - pb - ts[..., None] * d2
+    reach = np.stack([arrays.pair_params[:, c[2]] for c in tried])[:, None, :]
+    depth = reach - np.linalg.norm(gap, axis=-1)
+    best = np.argmax(depth, axis=0)[None]  # the first of equal depths, as the kernel
+    depth, ss, ts = (np.take_along_axis(a, best, axis=0)[0] for a in (depth, ss, ts))
+    return depth, ss, ts
+
+
+def _pair_forces_np(
+    x: NDArray[np.float64],
+    v: NDArray[np.float64],
+    by_node: NDArray[np.float64],
+    arrays: KernelArrays,
+) -> None:
+    """Adds the rod-rod contact forces to ``by_node`` (n, S, 3) (N), from positions and
+    velocities ``x``, ``v`` (S, n, 3)."""
+    _, _, _, _, _, smooth, contact_k, contact_c = arrays.constants
+    a0, a1, b0, b1 = arrays.pairs.T
+    depth, s, t = _deepest_touch_np(x, arrays)
+    sv, tv = s[..., None], t[..., None]
+    gap = x[:, a0] + sv * (x[:, a1] - x[:, a0]) - x[:, b0] - tv * (x[:, b1] - x[:, b0])
     dist = np.linalg.norm(gap, axis=-1)
     centre = 0.5 * (x[:, a0] + x[:, a1] - x[:, b0] - x[:, b1])
     near = (
-        (np.einsum("spi,spi->sp", centre, centre) <= bound)
+        (np.einsum("spi,spi->sp", centre, centre) <= arrays.pair_params[:, 4])
         & (dist >= 1e-9)
-        & (dist < reach + smooth)
+        & (depth > -smooth)
     )
     normal = gap / np.where(dist > 0, dist, 1.0)[..., None]
-    depth = reach - dist
-    sv, tv = s[..., None], t[..., None]
     rel = np.einsum(
         "spi,spi->sp",
         (1 - sv) * v[:, a0] + sv * v[:, a1] - (1 - tv) * v[:, b0] - tv * v[:, b1],

@@ -14,8 +14,10 @@ Semi-implicit Euler per substep, all forces from the state at the start of it:
   pushes) and T = K (L - L0) + c dL/dt for a rod; node i gets (T / L)(x_j - x_i), node j
   the opposite;
   the actuated rest lengths are interpolated linearly at the middle of the substep;
-- rod-rod contact: closest points p(s) on rod a and q(t) on rod b, d = |p - q|; within
-  reach R = r_a + r_b (plus the smoothing width) the normal force
+- rod-rod contact: each rod is a tube of its radius between two endcap spheres; of every
+  part of rod a against every part of rod b, the one that overlaps most (largest
+  R - d) gives the closest points p(s) on rod a and q(t) on rod b, d = |p - q|, and the
+  sum R of the two parts' radii; within R (plus the smoothing width) the normal force
   f = kc ramp(R - d) - cc (n.(v_p - v_q)) step(R - d), n = (p - q) / d, is applied only
   if positive, split between each rod's two nodes like a lever (1 - s, s and 1 - t, t);
 - ground: penetration e = r - z, normal force fn = max(0, kg ramp(e) - cg v_z step(e));
@@ -39,7 +41,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from estimation.ukf.spring_mass import SpringMassModel
-    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.description import RobotDescription, Rod
 
 
 def ramp(u: float, w: float) -> float:
@@ -92,6 +94,45 @@ def closest_parameters(
             candidates.append((s, min(max((s * b + f) / e, 0.0), 1.0)))
     s, t = min(candidates, key=lambda st: dist(*st))
     return s, t, dist(s, t)
+
+
+def segment_parameter(
+    p: NDArray[np.float64], q0: NDArray[np.float64], q1: NDArray[np.float64]
+) -> float:
+    """t of the point q0 + t (q1 - q0) closest to the point p."""
+    d = q1 - q0
+    return min(max(float((p - q0) @ d) / float(d @ d), 0.0), 1.0)
+
+
+def deepest_touch(
+    x: NDArray[np.float64], rod_a: Rod, rod_b: Rod
+) -> tuple[float, float, float, float]:
+    """(s, t, reach, distance) of the parts of two rods that overlap most: every pair of
+    parts (tube or either endcap of rod a, the same of rod b), reach the sum of their
+    radii, distance that of their closest points p(s) on rod a's axis, q(t) on rod b's."""
+    a0, a1 = (x[i] for i in rod_a.nodes)
+    b0, b1 = (x[i] for i in rod_b.nodes)
+    best: tuple[float, float, float, float] | None = None
+    for part_a in ("tube", 0.0, 1.0):
+        for part_b in ("tube", 0.0, 1.0):
+            if part_a == "tube" and part_b == "tube":
+                s, t, _ = closest_parameters(a0, a1, b0, b1)
+            elif part_b == "tube":
+                s = float(part_a)
+                t = segment_parameter(a0 + s * (a1 - a0), b0, b1)
+            elif part_a == "tube":
+                t = float(part_b)
+                s = segment_parameter(b0 + t * (b1 - b0), a0, a1)
+            else:
+                s, t = float(part_a), float(part_b)
+            reach = (rod_a.radius if part_a == "tube" else rod_a.endcap_radius) + (
+                rod_b.radius if part_b == "tube" else rod_b.endcap_radius
+            )
+            dist = float(np.linalg.norm(a0 + s * (a1 - a0) - b0 - t * (b1 - b0)))
+            if best is None or reach - dist > best[2] - best[3]:
+                best = (s, t, reach, dist)
+    assert best is not None
+    return best
 
 
 @dataclass
@@ -175,13 +216,12 @@ def propagate_reference(
             tension = rod_k * (length - rod.length) + rod_c * rate
             force[i] += tension / length * u
             force[j] -= tension / length * u
-        # Rod-rod contact between the capsules' axes.
+        # Rod-rod contact where tubes or endcaps overlap most.
         for ra in range(d.n_rods):
             for rb in range(ra + 1, d.n_rods):
                 a0, a1 = d.rods[ra].nodes
                 b0, b1 = d.rods[rb].nodes
-                s, t, dist = closest_parameters(x[a0], x[a1], x[b0], x[b1])
-                reach = d.rods[ra].endcap_radius + d.rods[rb].endcap_radius
+                s, t, reach, dist = deepest_touch(x, d.rods[ra], d.rods[rb])
                 if dist >= reach + w:
                     continue
                 normal = ((x[a0] + s * (x[a1] - x[a0])) - (x[b0] + t * (x[b1] - x[b0]))) / dist

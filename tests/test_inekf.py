@@ -92,14 +92,17 @@ def test_contacts_from_the_shape_where_the_robot_has_no_contact_sensors(
     # contact sensors 7 %. With shapes at 20 Hz on each period's last encoder reading and
     # a slip density of 0.02: 27 % over 3.1 m, the exact set in 40 % of the steps (18 %
     # with 0.03, 30 % with 0.01: one run, and a noisy one); with contact sensors 5 %.
-    # The shape's node error decides which endcaps are lowest.
+    # With thin rods between wider endcaps (the simulator's collision shape since rods
+    # may lie closer than their endcaps): 2.19 m. The shape's node error decides which
+    # endcaps are lowest.
     shaped = _gait_run(InekfEstimator(InekfConfig(contacts="shape")), 120)
-    assert shaped["path"] > 2.2
+    assert shaped["path"] > 2.0
     assert shaped["drift"][-1] < 0.35 * shaped["path"]
     assert shaped["agree"] > 0.05
     # The sensors flag endcaps within 2 mm of the ground, this test's truth within 2 cm
-    # of the lowest: they differ on a few steps of a roll (measured: 90 % the same).
-    assert sensed["agree"] > 0.85, "with contact sensors the contacts are the sensed ones"
+    # of the lowest: they differ on a few steps of a roll (measured: 90 % the same; 85 %
+    # with thin rods).
+    assert sensed["agree"] > 0.8, "with contact sensors the contacts are the sensed ones"
 
 
 def test_the_shape_detector_keeps_a_contact_until_it_rises_past_leave() -> None:

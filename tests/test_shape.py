@@ -188,7 +188,9 @@ def test_cables_held_taut_are_never_taken_slack(gait: Gait) -> None:
     held = taut.solve(distances, weights, frame.up, frame.contacts)
     freed = prone.solve(distances, weights, frame.up, frame.contacts)
     assert freed.converged and freed.slack == (4,)  # taken as slack, the rest fit
-    assert held.slack == () and held.residual_rms > freed.residual_rms
+    # Held, no actuated cable goes slack (a passive one may, where the fit needs it).
+    assert not set(held.slack) & set(description.actuated.tolist()), held.slack
+    assert held.residual_rms > freed.residual_rms
 
 
 def test_rest_shape_and_cable_distances() -> None:

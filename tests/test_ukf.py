@@ -58,7 +58,12 @@ from tensegrity_gym.sim.backend import SimBackend
 from tensegrity_gym.sim.world import PhysicsWorld
 from tensegrity_gym.tasks.gaits import FaceGait
 
-from .reference_spring_mass import Events, closest_parameters, propagate_reference
+from .reference_spring_mass import (
+    Events,
+    closest_parameters,
+    deepest_touch,
+    propagate_reference,
+)
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -496,23 +501,30 @@ def _pressed_pair(d: RobotDescription, nodes: NDArray[np.float64]) -> tuple[int,
     return min(pairs, key=lambda p: abs(float(axes[p[0]] @ axes[p[1]])))
 
 
-def _press(d: RobotDescription, x: NDArray[np.float64], end: bool) -> None:
+PRESSES = ("tubes", "endcap on tube", "endcaps")
+
+
+def _press(d: RobotDescription, x: NDArray[np.float64], how: str) -> None:
     """Move one rod rigidly into the pair partner found by :func:`_pressed_pair`, to half
-    their contact distance: mid-rod to mid-rod, or (``end``) its far endcap onto the
-    side of the other rod near that rod's end, where centre-distance culling would miss."""
+    the distance at which the parts ``how`` (one of :data:`PRESSES`) touch: mid-tube to
+    mid-tube; its far endcap onto the side of the other rod's tube near that rod's end,
+    where centre-distance culling would miss; or its far endcap onto the other's."""
     a, b = _pressed_pair(d, x)
     (a0, a1), (b0, b1) = d.rod_nodes[a], d.rod_nodes[b]
-    reach = d.rods[a].endcap_radius + d.rods[b].endcap_radius
-    if not end:
+    ra, rb = d.rods[a], d.rods[b]
+    if how == "tubes":
         s, t, dist = closest_parameters(x[a0], x[a1], x[b0], x[b1])
         gap = (x[a0] + s * (x[a1] - x[a0])) - (x[b0] + t * (x[b1] - x[b0]))
-        x[[b0, b1]] += (dist - 0.5 * reach) * gap / dist  # rod b moved toward rod a
+        x[[b0, b1]] += (dist - 0.5 * (ra.radius + rb.radius)) * gap / dist  # b toward a
         return
     axis = (x[a1] - x[a0]) / np.linalg.norm(x[a1] - x[a0])
     away = x[b0] - x[b1]
     side = away - (away @ axis) * axis
     side /= np.linalg.norm(side)  # rod b runs off rod a along this side
-    target = x[a0] + 0.95 * (x[a1] - x[a0]) + 0.5 * reach * side
+    if how == "endcap on tube":
+        target = x[a0] + 0.95 * (x[a1] - x[a0]) + 0.5 * (ra.radius + rb.endcap_radius) * side
+    else:
+        target = x[a1] + 0.5 * (ra.endcap_radius + rb.endcap_radius) * side
     x[[b0, b1]] += target - x[b1]
 
 
@@ -525,7 +537,7 @@ def _hard_states(
     Each state: the resting shape perturbed by 1 % of a rod length and given random
     velocities (in the third state, fast enough for cable damping to exceed the spring:
     the clamp that keeps cables from pushing acts); two rods pressed into each other to
-    half their contact distance (mid to mid, or end to side in every other state); the
+    half their contact distance (tube to tube, endcap to tube, endcap to endcap); the
     robot lowered so that its lowest node is 1 % of a rod length under its surface. The
     rest lengths let some actuated cables out (slack), put one within the smoothing band
     of its slack point, and slew all of them over the interval.
@@ -536,7 +548,7 @@ def _hard_states(
     for k in range(count):
         x = d.initial_positions + 0.01 * L * rng.standard_normal((n, 3))
         v = (3.0 if k == 2 else 0.2) * L * rng.standard_normal((n, 3))
-        _press(d, x, end=k % 2 == 1)
+        _press(d, x, PRESSES[k % len(PRESSES)])
         x[:, 2] -= float(np.min(x[:, 2] - radius)) + 0.01 * L
         states.append(np.concatenate([x.ravel(), v.ravel()]))
     S = np.array(states)
@@ -561,9 +573,9 @@ def test_compiled_model_equals_the_plain_reference(robot: str, duration: float) 
         nodes = state[: 3 * n].reshape(n, 3)
         assert np.any(nodes[:, 2] < radius), "a node under the ground"
         a, b = _pressed_pair(d, nodes)
-        (a0, a1), (b0, b1) = d.rod_nodes[a], d.rod_nodes[b]
-        reach = d.rods[a].endcap_radius + d.rods[b].endcap_radius
-        assert closest_parameters(nodes[a0], nodes[a1], nodes[b0], nodes[b1])[2] < reach
+        _, _, reach, dist = deepest_touch(nodes, d.rods[a], d.rods[b])
+        tubes = d.rods[a].radius + d.rods[b].radius
+        assert reach - dist >= 0.5 * tubes - 1e-12, "two rods pressed together"
     cables = member_lengths(states[0, : 3 * n].reshape(n, 3), d.cable_nodes)[d.actuated]
     assert np.any(cables < r0), "a slack cable"
     assert np.any(np.abs(cables - r0) < model.smoothing), "a cable in the rounded corner"

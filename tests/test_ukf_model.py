@@ -43,6 +43,46 @@ def test_compiled_model_matches_the_reference(robot: str) -> None:
     assert centre_gap(fast[2]) > 2.0 * centre_gap(states[2])
 
 
+@pytest.mark.parametrize(
+    ("how", "gap", "pushed"),
+    [
+        ("tubes", 0.025, False),  # the endcaps' 3.5 cm would push these apart
+        ("tubes", 0.015, True),
+        ("endcap on tube", 0.025, True),  # 1.75 + 1 cm reach
+        ("endcap on endcap", 0.033, True),  # 3.5 cm reach
+        ("endcap on endcap", 0.037, False),
+    ],
+)
+def test_rods_touch_where_tubes_or_endcaps_meet(how: str, gap: float, pushed: bool) -> None:
+    """Two rods of the 3-bar robot (tubes of 1 cm radius, endcaps of 1.75 cm) held in
+    the air with every member, gravity and the ground switched off: they push each other
+    only where a tube or endcap overlaps the other rod's, and then apart."""
+    d = load_robot("three_bar")
+    model = SpringMassModel(d)
+    model.stiffness = np.zeros_like(model.stiffness)
+    model.damping = np.zeros_like(model.damping)
+    model.gravity = 0.0
+    x = np.array(d.initial_positions) + np.array([0.0, 0.0, 10.0])
+    (a0, a1), (b0, b1) = d.rod_nodes[0], d.rod_nodes[1]
+    half = 0.5 * d.rods[0].length
+    x[[a0, a1]] = [[-half, 0.0, 10.0], [half, 0.0, 10.0]]  # rod 0 along x
+    if how == "tubes":  # rod 1 across it, along y, above its middle
+        x[[b0, b1]] = [[0.0, -half, 10.0 + gap], [0.0, half, 10.0 + gap]]
+    elif how == "endcap on tube":  # rod 1 standing on rod 0's side, its endcap down
+        x[[b0, b1]] = [[0.1, 0.0, 10.0 + gap], [0.1, 0.0, 10.0 + gap + 2 * half]]
+    else:  # rod 1 upright, its endcap right over rod 0's
+        x[[b0, b1]] = [[half, 0.0, 10.0 + gap], [half, 0.0, 10.0 + gap + 2 * half]]
+    state = np.concatenate([x.ravel(), np.zeros(3 * d.n_nodes)])
+    out = model.propagate(state, 0.05, d.rest_lengths[d.actuated])
+    moved = np.abs(out - state).max()
+    if pushed:
+        # With the rods' own members off, only the touching node of an upright rod moves.
+        up = out[3 * d.n_nodes :].reshape(-1, 3)[[b0, b1], 2]
+        assert up.max() > 0.0 and up.min() >= 0.0, f"{how} at {gap} m: v_z = {up}"
+    else:
+        assert moved == 0.0, f"{how} at {gap} m: the rods touched (moved {moved:.3g} m)"
+
+
 def test_named_parameters_are_what_the_kernel_reads() -> None:
     """Writing a named parameter changes the kernel's arrays, and so what it computes."""
     d = load_robot("three_bar")

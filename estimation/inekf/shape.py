@@ -1072,7 +1072,9 @@ class ShapeReconstructor:
         a, b = d.rod_nodes[self.base_rod]
         half = 0.5 * d.rods[self.base_rod].length
         self._base[a, 2], self._base[b, 2] = -half, half
-        radius = np.array([r.endcap_radius for r in d.rods])
+        # Rods cross nowhere closer than their tubes let them (15g-i): the endcaps,
+        # wider, are left to the cables that keep them apart.
+        radius = np.array([r.radius for r in d.rods])
         self._clearance = radius[:, None] + radius[None, :]
         self._rod_lengths = np.array([r.length for r in d.rods])
 

@@ -83,7 +83,7 @@ _NODE_I, _NODE_J, _IS_CABLE = 0, 1, 2  # members
 _STIFFNESS, _DAMPING = 0, 1  # member_params
 _INV_MASS, _GROUND_HEIGHT = 0, 1  # nodes
 _GRAVITY, _GROUND_K, _GROUND_C, _FRICTION, _SLIP, _SMOOTHING, _CONTACT_K, _CONTACT_C = range(8)
-_REACH, _BOUND = 0, 1  # pair_params
+_TUBES, _CAP_A, _CAP_B, _CAPS, _BOUND = range(5)  # pair_params
 
 
 class KernelArrays(NamedTuple):
@@ -105,8 +105,9 @@ class KernelArrays(NamedTuple):
     pairs: NDArray[np.int64]
     """(P, 4): nodes a0, a1 of rod a, then b0, b1 of rod b."""
     pair_params: NDArray[np.float64]
-    """(P, 2): contact distance, the sum of the two endcap radii (m); the squared centre
-    distance beyond which the pair cannot touch (m^2)."""
+    """(P, 5): the distances (m) at which the pair touches: tube on tube (the sum of the
+    rods' radii), rod a's endcap on rod b's tube, rod b's endcap on rod a's tube, endcap on
+    endcap; then the squared centre distance beyond which the pair cannot touch (m^2)."""
 
 
 class Kernel(Protocol):
@@ -318,8 +319,8 @@ def _constants(
     out[_GROUND_K] = ground_k
     out[_GROUND_C] = p.ground_damping_ratio * 2.0 * np.sqrt(ground_k * m_min)
     out[_FRICTION] = p.friction if p.friction is not None else d.ground.lateral_friction
-    # Rods touch (their collision shapes are capsules of the endcap radius): every
-    # pair of rods can push on each other where their axes come within two radii.
+    # Rods touch (each a tube between two wider endcaps): every pair of rods can push on
+    # each other where their tubes or endcaps meet.
     contact_k = (
         p.rod_contact_stiffness
         if p.rod_contact_stiffness is not None
@@ -337,15 +338,19 @@ def _pair_params(
     d: RobotDescription, pairs: list[tuple[int, int]], smoothing: float
 ) -> NDArray[np.float64]:
     """:attr:`KernelArrays.pair_params` of the rod pairs ``pairs``."""
-    distance = np.array([d.rods[a].endcap_radius + d.rods[b].endcap_radius for a, b in pairs])
-    # Squared centre distance beyond which a pair cannot touch (with 20 % slack for
-    # rods stretched in a sigma point).
-    reach = (
-        np.array([0.6 * (d.rods[a].length + d.rods[b].length) for a, b in pairs])
-        + distance
-        + smoothing
-    )
-    return np.column_stack([distance, reach**2]).reshape(-1, 2)
+    out = np.empty((len(pairs), 5))
+    for row, (a, b) in zip(out, pairs, strict=True):
+        ra, rb = d.rods[a], d.rods[b]
+        row[:4] = (
+            ra.radius + rb.radius,
+            ra.endcap_radius + rb.radius,
+            ra.radius + rb.endcap_radius,
+            ra.endcap_radius + rb.endcap_radius,
+        )
+        # Squared centre distance beyond which a pair cannot touch (with 20 % slack for
+        # rods stretched in a sigma point).
+        row[_BOUND] = (0.6 * (ra.length + rb.length) + row[_CAPS] + smoothing) ** 2
+    return out
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -374,24 +379,11 @@ def _step(x: float, width: float) -> float:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _rod_contact(
-    x: NDArray[np.float64],
-    v: NDArray[np.float64],
-    force: NDArray[np.float64],
-    a0: int,
-    a1: int,
-    b0: int,
-    b1: int,
-    reach: float,
-    k: float,
-    c: float,
-    smooth: float,
-) -> None:
-    """Penalty between rods (a0, a1) and (b0, b1) whose axes come closer than ``reach``.
-
-    The closest points of the two segments (Ericson, Real-Time Collision Detection
-    5.1.9) split the contact force between each rod's two nodes like a lever.
-    """
+def _segments_closest(
+    x: NDArray[np.float64], a0: int, a1: int, b0: int, b1: int
+) -> tuple[float, float, float]:
+    """(s, t, distance (m)) of the closest points x[a0] + s (x[a1] - x[a0]) and x[b0] +
+    t (x[b1] - x[b0]) of two segments (Ericson, Real-Time Collision Detection 5.1.9)."""
     # Scalars throughout: small temporary arrays would be allocated on every call.
     d1x, d1y, d1z = x[a1, 0] - x[a0, 0], x[a1, 1] - x[a0, 1], x[a1, 2] - x[a0, 2]
     d2x, d2y, d2z = x[b1, 0] - x[b0, 0], x[b1, 1] - x[b0, 1], x[b1, 2] - x[b0, 2]
@@ -415,11 +407,93 @@ def _rod_contact(
     gx = rx + s * d1x - t * d2x
     gy = ry + s * d1y - t * d2y
     gz = rz + s * d1z - t * d2z
-    dist = np.sqrt(gx * gx + gy * gy + gz * gz)
-    if dist < 1e-9 or dist >= reach + smooth:
+    return s, t, np.sqrt(gx * gx + gy * gy + gz * gz)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _gap(
+    x: NDArray[np.float64], a0: int, a1: int, b0: int, b1: int, s: float, t: float
+) -> tuple[float, float, float, float]:
+    """The vector from x[b0] + t (x[b1] - x[b0]) to x[a0] + s (x[a1] - x[a0]), and its
+    length (m)."""
+    gx = x[a0, 0] + s * (x[a1, 0] - x[a0, 0]) - x[b0, 0] - t * (x[b1, 0] - x[b0, 0])
+    gy = x[a0, 1] + s * (x[a1, 1] - x[a0, 1]) - x[b0, 1] - t * (x[b1, 1] - x[b0, 1])
+    gz = x[a0, 2] + s * (x[a1, 2] - x[a0, 2]) - x[b0, 2] - t * (x[b1, 2] - x[b0, 2])
+    return gx, gy, gz, np.sqrt(gx * gx + gy * gy + gz * gz)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _on_segment(x: NDArray[np.float64], p: int, p1: int, end: float, q0: int, q1: int) -> float:
+    """Parameter in [0, 1] of the point of segment (q0, q1) closest to the end ``end``
+    (0 or 1) of segment (p, p1)."""
+    px = x[p, 0] + end * (x[p1, 0] - x[p, 0]) - x[q0, 0]
+    py = x[p, 1] + end * (x[p1, 1] - x[p, 1]) - x[q0, 1]
+    pz = x[p, 2] + end * (x[p1, 2] - x[p, 2]) - x[q0, 2]
+    dx, dy, dz = x[q1, 0] - x[q0, 0], x[q1, 1] - x[q0, 1], x[q1, 2] - x[q0, 2]
+    t: float = (px * dx + py * dy + pz * dz) / (dx * dx + dy * dy + dz * dz)
+    return min(max(t, 0.0), 1.0)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _deepest_touch(
+    x: NDArray[np.float64],
+    a0: int,
+    a1: int,
+    b0: int,
+    b1: int,
+    pair_params: NDArray[np.float64],
+    pair: int,
+) -> tuple[float, float, float]:
+    """(depth (m), s, t) of the deepest overlap of rods (a0, a1) and (b0, b1), each a tube
+    between two endcap spheres: tube on tube, an endcap of rod a on rod b's tube and
+    endcaps, then an endcap of rod b on rod a's tube, at the distances of row ``pair`` of
+    :attr:`KernelArrays.pair_params`. The first of equal depths wins."""
+    s, t, dist = _segments_closest(x, a0, a1, b0, b1)
+    best, bs, bt = pair_params[pair, _TUBES] - dist, s, t
+    for end in (0.0, 1.0):
+        t = _on_segment(x, a0, a1, end, b0, b1)
+        depth = pair_params[pair, _CAP_A] - _gap(x, a0, a1, b0, b1, end, t)[3]
+        if depth > best:
+            best, bs, bt = depth, end, t
+        for other in (0.0, 1.0):
+            depth = pair_params[pair, _CAPS] - _gap(x, a0, a1, b0, b1, end, other)[3]
+            if depth > best:
+                best, bs, bt = depth, end, other
+    for end in (0.0, 1.0):
+        s = _on_segment(x, b0, b1, end, a0, a1)
+        depth = pair_params[pair, _CAP_B] - _gap(x, a0, a1, b0, b1, s, end)[3]
+        if depth > best:
+            best, bs, bt = depth, s, end
+    return best, bs, bt
+
+
+# Not inlined, and reached only by rods that may touch: inlined, its nine tries slowed
+# the whole kernel 1.5-2x, even where no rods touched.
+@numba.njit(cache=True, nogil=True)
+def _rod_contact(
+    x: NDArray[np.float64],
+    v: NDArray[np.float64],
+    force: NDArray[np.float64],
+    a0: int,
+    a1: int,
+    b0: int,
+    b1: int,
+    pair_params: NDArray[np.float64],
+    pair: int,
+    k: float,
+    c: float,
+    smooth: float,
+) -> None:
+    """Penalty between rods (a0, a1) and (b0, b1) where their tubes or endcaps overlap.
+
+    The deepest overlap's two points split the contact force between each rod's two
+    nodes like a lever.
+    """
+    depth, s, t = _deepest_touch(x, a0, a1, b0, b1, pair_params, pair)
+    gx, gy, gz, dist = _gap(x, a0, a1, b0, b1, s, t)
+    if dist < 1e-9 or depth <= -smooth:
         return
     nx, ny, nz = gx / dist, gy / dist, gz / dist  # from rod b toward rod a
-    depth = reach - dist
     rel = 0.0
     for dim, nd in ((0, nx), (1, ny), (2, nz)):
         rel += nd * (
@@ -566,8 +640,11 @@ def _propagate(
                 cz = 0.5 * (x[a0, 2] + x[a1, 2] - x[b0, 2] - x[b1, 2])
                 if cx * cx + cy * cy + cz * cz > pair_params[k, _BOUND]:
                     continue
+                # The axes' distance bounds every other: rods this far apart cannot touch.
+                if _segments_closest(x, a0, a1, b0, b1)[2] >= pair_params[k, _CAPS] + smooth:
+                    continue
                 _rod_contact(
                     x, v, force, a0, a1, b0, b1,
-                    pair_params[k, _REACH], contact_k, contact_c, smooth,
+                    pair_params, k, contact_k, contact_c, smooth,
                 )  # fmt: skip
             _advance_nodes(x, v, force, nodes, constants, h)

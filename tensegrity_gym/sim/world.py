@@ -1,12 +1,13 @@
 """The PyBullet world of one robot: the only module of the project that imports pybullet.
 
-Rods are rigid capsules built with maximal coordinates (as floating-base multibodies
-they blew up under actuation). Cables are unilateral spring-dampers whose forces are
-applied to the rods every physics step; with tension positive and the force on node i
-equal to q (x_j - x_i), damping enters as ``+c dL/dt`` in the tension. Motors slew the
-actuated cables' rest lengths toward their targets at a limited speed; a motor with a
-``min_tension`` also reels in its cable's slack at once, so its rest length (the
-encoder's reading) never exceeds the endcap distance less that tension's stretch.
+Rods are rigid bodies, a tube between two wider endcap spheres, built with maximal
+coordinates (as floating-base multibodies they blew up under actuation). Cables are
+unilateral spring-dampers whose forces are applied to the rods every physics step; with
+tension positive and the force on node i equal to q (x_j - x_i), damping enters as
+``+c dL/dt`` in the tension. Motors slew the actuated cables' rest lengths toward their
+targets at a limited speed; a motor with a ``min_tension`` also reels in its cable's
+slack at once, so its rest length (the encoder's reading) never exceeds the endcap
+distance less that tension's stretch.
 
 The hot loop is plain Python over floats: for 9-24 cables it beats numpy, whose
 per-call overhead dominates at these sizes.
@@ -211,19 +212,20 @@ class PhysicsWorld:
         )
         self.bodies = []
         for rod in d.rods:
-            col = pybullet.createCollisionShape(
-                pybullet.GEOM_CAPSULE,
-                radius=rod.endcap_radius,
-                height=rod.length,
-                physicsClientId=c,
-            )
+            # The rod as built: a thin tube between two wider endcaps, for collisions
+            # as for drawing (rods lying side by side come as close as their tubes let).
             h = 0.5 * rod.length
+            shape = {
+                "shapeTypes": [pybullet.GEOM_CYLINDER, pybullet.GEOM_SPHERE, pybullet.GEOM_SPHERE],
+                "radii": [rod.radius, rod.endcap_radius, rod.endcap_radius],
+                "lengths": [rod.length, 0.0, 0.0],
+            }
+            frames = [[0.0, 0.0, 0.0], [0.0, 0.0, -h], [0.0, 0.0, h]]
+            col = pybullet.createCollisionShapeArray(
+                **shape, collisionFramePositions=frames, physicsClientId=c
+            )
             vis = pybullet.createVisualShapeArray(
-                shapeTypes=[pybullet.GEOM_CYLINDER, pybullet.GEOM_SPHERE, pybullet.GEOM_SPHERE],
-                radii=[rod.radius, rod.endcap_radius, rod.endcap_radius],
-                lengths=[rod.length, 0.0, 0.0],
-                visualFramePositions=[[0.0, 0.0, 0.0], [0.0, 0.0, -h], [0.0, 0.0, h]],
-                physicsClientId=c,
+                **shape, visualFramePositions=frames, physicsClientId=c
             )
             body = pybullet.createMultiBody(
                 rod.mass, col, vis, useMaximalCoordinates=True, physicsClientId=c
