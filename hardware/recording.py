@@ -41,6 +41,7 @@ if TYPE_CHECKING:
 __all__ = [
     "EPISODE_INFO",
     "BagSink",
+    "Episode",
     "FanOutSink",
     "MemorySink",
     "RecordedRun",
@@ -341,6 +342,18 @@ def wall_clock_origin_ns() -> int:
     return time.time_ns() // 1_000_000_000 * 1_000_000_000
 
 
+@dataclass(frozen=True)
+class Episode:
+    """What a :class:`WriterSink` opens an episode's writer with."""
+
+    description: RobotDescription
+    calibration: SensorCalibration
+    run_info: dict[str, Any]
+    """Its ``/tensegrity/run_info``: the sink's, the episode's number and control period."""
+    clock_origin_ns: int
+    """Robot-clock ns of sample time 0 (see :attr:`WriterSink.wall_clock`)."""
+
+
 class WriterSink:
     """Writes each episode through a :class:`~hardware.bag.writer.MessageWriter` that a
     subclass opens (:meth:`_open`): a bag (:class:`BagSink`), a live view
@@ -376,14 +389,8 @@ class WriterSink:
         self.episodes = 0
         self._truth: GroundTruth | None = None
 
-    def _open(
-        self,
-        description: RobotDescription,
-        calibration: SensorCalibration,
-        info: dict[str, Any],
-        clock_origin_ns: int,
-    ) -> MessageWriter:
-        """The writer of a new episode (its number is ``info["episode"]``)."""
+    def _open(self, episode: Episode) -> MessageWriter:
+        """The writer of a new episode."""
         raise NotImplementedError
 
     def _episode_number(self) -> int:
@@ -407,7 +414,7 @@ class WriterSink:
         number = self._episode_number()
         info = {**self.run_info, **(episode_info or {}), "episode": number,
                 "control_period": control_period}  # fmt: skip
-        self.writer = self._open(description, calibration, info, clock_origin_ns)
+        self.writer = self._open(Episode(description, calibration, info, clock_origin_ns))
         self.episodes += 1
         self.writer.write_samples(start.samples)
         self._truth = start.truth
@@ -474,24 +481,18 @@ class BagSink(WriterSink):
     def _episode_number(self) -> int:
         return self._next
 
-    def _open(
-        self,
-        description: RobotDescription,
-        calibration: SensorCalibration,
-        info: dict[str, Any],
-        clock_origin_ns: int,
-    ) -> MessageWriter:
+    def _open(self, episode: Episode) -> MessageWriter:
         from hardware.bag.writer import BagWriter
 
         path = self.folder / f"episode_{self._next:03d}"
         self._next += 1
         writer = BagWriter(
             path,
-            description,
-            calibration,
-            info,
+            episode.description,
+            episode.calibration,
+            episode.run_info,
             flush_period=self.flush_period,
-            clock_origin_ns=clock_origin_ns,
+            clock_origin_ns=episode.clock_origin_ns,
             markers=self.markers,
         )
         self.paths.append(writer.path)

@@ -27,9 +27,8 @@ if TYPE_CHECKING:
     from collections.abc import Mapping
 
     from hardware.bag.codec import Encoded
-    from tensegrity_gym.model.description import RobotDescription
+    from hardware.recording import Episode
     from tensegrity_gym.model.estimate import Estimate
-    from tensegrity_gym.model.protocols import SensorCalibration
 
 __all__ = ["DEFAULT_PORT", "INSTALL_HINT", "FoxgloveSink", "ViewerError"]
 
@@ -130,20 +129,14 @@ class FoxgloveSink(WriterSink):
         self._clock: tuple[float, float] | None = None  # (run time, monotonic time) at start
         log.info("Foxglove live view at %s", self.url)
 
-    def _open(
-        self,
-        description: RobotDescription,
-        calibration: SensorCalibration,
-        info: dict[str, Any],
-        clock_origin_ns: int,
-    ) -> MessageWriter:
+    def _open(self, episode: Episode) -> MessageWriter:
         self._clock = None
         return _LiveWriter(
             self,
-            description,
-            calibration,
-            info,
-            clock_origin_ns=clock_origin_ns,
+            episode.description,
+            episode.calibration,
+            episode.run_info,
+            clock_origin_ns=episode.clock_origin_ns,
             markers=self.markers,
         )
 
