@@ -215,17 +215,17 @@ class PhysicsWorld:
             # The rod as built: a thin tube between two wider endcaps, for collisions
             # as for drawing (rods lying side by side come as close as their tubes let).
             h = 0.5 * rod.length
-            shape = {
+            parts = {
                 "shapeTypes": [pybullet.GEOM_CYLINDER, pybullet.GEOM_SPHERE, pybullet.GEOM_SPHERE],
                 "radii": [rod.radius, rod.endcap_radius, rod.endcap_radius],
                 "lengths": [rod.length, 0.0, 0.0],
             }
             frames = [[0.0, 0.0, 0.0], [0.0, 0.0, -h], [0.0, 0.0, h]]
             col = pybullet.createCollisionShapeArray(
-                **shape, collisionFramePositions=frames, physicsClientId=c
+                **parts, collisionFramePositions=frames, physicsClientId=c
             )
             vis = pybullet.createVisualShapeArray(
-                **shape, visualFramePositions=frames, physicsClientId=c
+                **parts, visualFramePositions=frames, physicsClientId=c
             )
             body = pybullet.createMultiBody(
                 rod.mass, col, vis, useMaximalCoordinates=True, physicsClientId=c
