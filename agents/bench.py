@@ -71,7 +71,7 @@ def run_benchmarks(
         if not jobs.local:
             from agents.bench_ray import bench_ray
 
-            results["ray"] = bench_ray()
+            results["ray"] = bench_ray(steps=max(speed_steps // 5, 100))
     return results
 
 

@@ -200,19 +200,28 @@ class RayVecEnv(VecEnv):
     def step_wait(self) -> VecEnvStepReturn:
         """Every worker's step, in env order; a dead worker's envs end their episodes."""
         ray = require_ray()
-        obs, rewards, dones, infos = [], [], [], []
-        for k, ref in enumerate(self._pending):
-            try:
-                o, r, d, i = ray.get(ref)
-            except ray.exceptions.RayActorError as err:
-                o, r, d, i = self._lost(k, err)
-            obs.append(o)
-            rewards.append(r)
-            dones.append(d)
-            infos.extend(i)
+        try:
+            results = ray.get(self._pending)  # one wait for all: the usual case
+        except ray.exceptions.RayActorError:
+            results = [self._step_result(k, ref) for k, ref in enumerate(self._pending)]
         self._pending = []
+        obs, rewards, dones, infos = zip(*results, strict=True)
         self._last_obs = np.concatenate(obs)
-        return self._last_obs.copy(), np.concatenate(rewards), np.concatenate(dones), infos
+        return (
+            self._last_obs.copy(),
+            np.concatenate(rewards),
+            np.concatenate(dones),
+            [info for part in infos for info in part],
+        )
+
+    def _step_result(self, k: int, ref: Any) -> VecEnvStepReturn:
+        """Worker ``k``'s step, or (it died) its envs' episodes ended."""
+        ray = require_ray()
+        try:
+            result: VecEnvStepReturn = ray.get(ref)
+        except ray.exceptions.RayActorError as err:
+            return self._lost(k, err)
+        return result
 
     def _lost(self, k: int, err: Exception) -> VecEnvStepReturn:
         """Worker ``k`` died during a step: its episodes end truncated at their last
