@@ -22,6 +22,7 @@ import yaml
 import tensegrity_gym  # noqa: F401  (registers the ids)
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec
+from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Sequence
@@ -35,7 +36,10 @@ if TYPE_CHECKING:
     from tensegrity_gym.tasks.roll import RollTask
 
 __all__ = [
+    "BASELINES",
     "CONDITIONS",
+    "GAIT_POLICY",
+    "RANDOM_POLICY",
     "Condition",
     "EpisodeResult",
     "LoadedPolicy",
@@ -44,10 +48,17 @@ __all__ = [
     "count_rolls",
     "evaluate_policies",
     "evaluate_policy",
+    "gait_policy",
     "load_policy",
+    "random_policy",
 ]
 
 log = logging.getLogger(__name__)
+
+RANDOM_POLICY = "random"
+GAIT_POLICY = "scripted gait"
+BASELINES = (RANDOM_POLICY, GAIT_POLICY)
+"""The names of the policies an evaluation sets beside the trained ones."""
 
 
 def _more_dropout(d: RobotDescription) -> RobotDescription:
@@ -297,7 +308,21 @@ def random_policy(env_id: str, seed: int) -> LoadedPolicy:
     low, high = env.action_space.low, env.action_space.high  # type: ignore[attr-defined]
     env.close()
     actions = _RandomActions(low, high, seed)
-    return LoadedPolicy("random", env_id, "-", actions, actions.new_episode)
+    return LoadedPolicy(RANDOM_POLICY, env_id, "-", actions, actions.new_episode)
+
+
+def gait_policy(env_id: str) -> LoadedPolicy | None:
+    """The robot's scripted face gait (:class:`FaceGait`, its ``"forward"`` gait) acting
+    on the estimates as a policy would; None for a robot without a gait."""
+    env = gym.make(env_id, estimator="oracle")
+    inner = cast("TensegrityEnv", env.unwrapped)
+    try:
+        gait = FaceGait(inner.backend.description, inner.task)
+    except ValueError:
+        return None
+    finally:
+        env.close()
+    return LoadedPolicy(GAIT_POLICY, env_id, "-", gait, lambda _seed: gait.reset())
 
 
 def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> EpisodeResult:

@@ -11,9 +11,13 @@ import numpy as np
 
 from agents.cluster import executor
 from agents.evaluate import (
+    BASELINES,
     CONDITIONS,
+    GAIT_POLICY,
+    RANDOM_POLICY,
     condition,
     evaluate_policies,
+    gait_policy,
     load_policy,
     random_policy,
     summarise,
@@ -81,7 +85,7 @@ def _plot_paths(results: dict[str, dict[str, list[EpisodeResult]]], file: Path, 
 def _plot_errors(results: dict[str, dict[str, list[EpisodeResult]]], file: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.5))
-    name = next(n for n in results if n != "random")
+    name = next(n for n in results if n not in BASELINES)
     for cond, episodes in results[name].items():
         if cond == "oracle":
             continue
@@ -140,28 +144,17 @@ def write_report(
     if len(set(names)) < len(names):  # two runs trained on the same estimator
         for p, d in zip(policies, run_dirs, strict=True):
             p.name = f"{p.name} ({d.name})"
+    trained = list(policies)
     if include_random:
         policies.append(random_policy(env_id, seed))
+        gait = gait_policy(env_id)
+        policies += [gait] if gait is not None else []
     out.mkdir(parents=True, exist_ok=True)
     log.info("evaluating %s under %s", [p.name for p in policies], list(conditions))
     with executor(ray_address) as jobs:
         results = evaluate_policies(policies, list(chosen.values()), episodes, seed, jobs)
     table = {p: {c: summarise(r) for c, r in by_cond.items()} for p, by_cond in results.items()}
-
-    checks: dict[str, Any] = {}
-    if include_random:
-        baseline_cond = "ukf" if "ukf" in conditions else conditions[0]
-        random_progress = table["random"][baseline_cond]["progress_mean_m"]
-        for p in policies[:-1]:
-            row = table[p.name][baseline_cond]
-            ratio = row["progress_mean_m"] / max(abs(random_progress), 1e-3)
-            checks[p.name] = {
-                "condition": baseline_cond,
-                "progress_vs_random": round(ratio, 1),
-                "rolls_per_episode": row["rolls_per_episode"],
-                "rolls_target_met": row["rolls_per_episode"] >= TARGET_ROLLS,
-                "progress_target_met": ratio >= TARGET_PROGRESS_RATIO,
-            }
+    checks = _checks(table, [p.name for p in trained], conditions) if include_random else {}
 
     _plot_paths(results, out / "com_paths.png", env_id.split("/")[-1])
     _plot_errors(results, out / "estimation_error.png")
@@ -185,6 +178,32 @@ def write_report(
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     (out / "report.md").write_text(_markdown(report, bool(curves)))
     return report
+
+
+def _checks(
+    table: dict[str, dict[str, dict[str, Any]]], trained: list[str], conditions: Sequence[str]
+) -> dict[str, Any]:
+    """Each trained policy against the baselines, under the UKF (else the first
+    condition): its progress over the random policy's and the scripted gait's (where the
+    robot has one), its rolls, and whether the targets are met."""
+    cond = "ukf" if "ukf" in conditions else conditions[0]
+    random_progress = table[RANDOM_POLICY][cond]["progress_mean_m"]
+    gait = table.get(GAIT_POLICY, {}).get(cond)
+    checks: dict[str, Any] = {}
+    for name in trained:
+        row = table[name][cond]
+        ratio = row["progress_mean_m"] / max(abs(random_progress), 1e-3)
+        checks[name] = {
+            "condition": cond,
+            "progress_vs_random": round(ratio, 1),
+            "rolls_per_episode": row["rolls_per_episode"],
+            "rolls_target_met": row["rolls_per_episode"] >= TARGET_ROLLS,
+            "progress_target_met": ratio >= TARGET_PROGRESS_RATIO,
+        }
+        if gait is not None:
+            share = row["progress_mean_m"] / max(abs(gait["progress_mean_m"]), 1e-3)
+            checks[name]["progress_vs_gait"] = round(share, 2)
+    return checks
 
 
 def _markdown(report: dict[str, Any], training_plot: bool) -> str:
@@ -215,15 +234,20 @@ def _markdown(report: dict[str, Any], training_plot: bool) -> str:
                 f"{100 * o['success_rate']:.0f} % against {100 * u['success_rate']:.0f} %."
             )
             lines.append("")
-        for name, c in checks.items():
-            lines.append(
-                f"- **{name}**, under `{c['condition']}`: {c['progress_vs_random']}x the "
-                f"progress of a random policy (target {TARGET_PROGRESS_RATIO:g}x: "
-                f"{'met' if c['progress_target_met'] else 'NOT met'}), "
-                f"{c['rolls_per_episode']} rolls per episode (target {TARGET_ROLLS:g}: "
-                f"{'met' if c['rolls_target_met'] else 'NOT met'})."
+    for name, c in checks.items():
+        lines.append(
+            f"- **{name}**, under `{c['condition']}`: {c['progress_vs_random']}x the "
+            f"progress of a random policy (target {TARGET_PROGRESS_RATIO:g}x: "
+            f"{'met' if c['progress_target_met'] else 'NOT met'}), "
+            f"{c['rolls_per_episode']} rolls per episode (target {TARGET_ROLLS:g}: "
+            f"{'met' if c['rolls_target_met'] else 'NOT met'})"
+            + (
+                f"; {c['progress_vs_gait']:.0%} of the scripted gait's progress."
+                if "progress_vs_gait" in c
+                else "."
             )
-        lines.append("")
+        )
+    lines.append("")
     lines += [
         "## Every policy under every condition",
         "",

@@ -227,13 +227,19 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
     report = write_report(
         [tiny_run], tmp_path / "report", episodes=1, conditions=("oracle", "ukf_4_anchors")
     )
-    assert set(report["results"]) == {"trained on oracle", "random"}
+    assert set(report["results"]) == {"trained on oracle", "random", "scripted gait"}
+    # The gait rolls (some 1.5 m in 30 s), the random policy hardly moves.
+    gait, random = report["results"]["scripted gait"], report["results"]["random"]
+    assert gait["oracle"]["progress_mean_m"] > 0.5 > abs(random["oracle"]["progress_mean_m"])
     row = report["results"]["trained on oracle"]["ukf_4_anchors"]
     assert row["episodes"] == 1 and row["com_error_mean_m"] > 0
     assert report["results"]["random"]["oracle"]["com_error_mean_m"] == 0.0
     check = report["checks"]["trained on oracle"]
     assert check["condition"] == "oracle" and "progress_vs_random" in check
+    trained = report["results"]["trained on oracle"]["oracle"]["progress_mean_m"]
+    assert check["progress_vs_gait"] == round(trained / gait["oracle"]["progress_mean_m"], 2)
     text = (tmp_path / "report" / "report.md").read_text()
+    assert "of the scripted gait's progress" in text and "| scripted gait | oracle |" in text
     assert "| trained on oracle | ukf_4_anchors |" in text and "![CoM paths]" in text
     for name in ("com_paths.png", "estimation_error.png", "training.png", "report.json"):
         assert (tmp_path / "report" / name).stat().st_size > 0
