@@ -119,6 +119,17 @@ def test_env_method_get_set_attr_seed_and_wrappers(vec: RayVecEnv) -> None:
 # ---------------------------------------------------------------------- training
 
 
+class _Kept(logging.Handler):
+    """Keeps the records it is handed."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
 class _KillOneWorker(BaseCallback):
     """Kills worker 0's process after ``at`` steps of the first rollout; notes where the
     workers ran and every info that says its worker restarted."""
@@ -128,6 +139,7 @@ class _KillOneWorker(BaseCallback):
         self.at = at
         self.nodes: set[str] = set()
         self.restarted = 0
+        self.logged: list[str] = []
 
     def _on_step(self) -> bool:
         venv = self.training_env.unwrapped
@@ -147,12 +159,19 @@ def ray_run(cluster: str, tmp_path_factory: pytest.TempPathFactory) -> tuple[Pat
     tmp = tmp_path_factory.mktemp("ray_train")
     killer = _KillOneWorker(at=100)
     config = _tiny_config(tmp, n_steps=256, batch_size=256, n_epochs=1)
-    train(
-        THREE_BAR, "ppo", "oracle", tmp / "run", timesteps=2048, seed=3, n_envs=4,
-        config_file=config, progress_bar=False, checkpoint_every=1024,
-        env_kwargs={"max_episode_steps": 50}, callbacks=[killer], ray_address=cluster,
-        workers=2,
-    )  # fmt: skip
+    logger = logging.getLogger("agents.cluster.vec_env")
+    handler = _Kept()
+    logger.addHandler(handler)
+    try:
+        train(
+            THREE_BAR, "ppo", "oracle", tmp / "run", timesteps=2048, seed=3, n_envs=4,
+            config_file=config, progress_bar=False, checkpoint_every=1024,
+            env_kwargs={"max_episode_steps": 50}, callbacks=[killer], ray_address=cluster,
+            workers=2,
+        )  # fmt: skip
+    finally:
+        logger.removeHandler(handler)
+    killer.logged = [r.getMessage() for r in handler.records]
     return tmp / "run", killer
 
 
@@ -168,7 +187,10 @@ def test_training_over_two_nodes_survives_a_killed_worker(
     for name in ("model.zip", "vecnormalize.pkl", "monitor/ray.monitor.csv"):
         assert (run / name).is_file(), name
     assert sorted(p.name for p in (run / "checkpoints").iterdir())[0].startswith("model_")
-    assert list((run / "tb").rglob("events.out.tfevents.*"))
+    events = list((run / "tb").rglob("events.out.tfevents.*"))
+    assert any(b"ray/worker_restarts" in f.read_bytes() for f in events)  # SB3's logger
+    [warning] = killer.logged
+    assert "Ray worker 0 died" in warning and "1 worker restarts" in warning
 
 
 def test_an_unreachable_cluster_is_one_line_within_the_timeout(tmp_path: Path) -> None:
@@ -241,3 +263,19 @@ def test_the_estimation_study_maps_its_replays_on_ray(cluster: str) -> None:
     here = bench_estimation(seeds=(0,), steps=30)
     there = bench_estimation(seeds=(0,), steps=30, executor=RayExecutor())
     assert here == there and len(here["table"]) == 9
+
+
+@pytest.mark.slow
+def test_the_ray_bench_measures_its_figures(cluster: str) -> None:
+    from agents.bench_ray import bench_ray
+
+    result = bench_ray(steps=20, turn=10)
+    assert set(result["env_steps_per_s"]) == {
+        "in_process_1_env", "subproc_2_workers", "ray_1_worker", "ray_2_workers",
+        "ray_2_workers_of_2_envs",
+    }  # fmt: skip
+    assert all(rate > 0 for rate in result["env_steps_per_s"].values())
+    sizing = result["sizing"]
+    assert (
+        sizing["t_env_ms"] > 0 and sizing["t_call_ms"] > 0 and sizing["t_learn_ms_per_env_step"] > 0
+    )
