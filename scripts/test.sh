@@ -6,4 +6,5 @@ python -m ruff check .
 python -m ruff format --check .
 python -m mypy tensegrity_gym estimation hardware agents
 # pytest exits 5 when it collects nothing: that fails this script, as it should.
-python -m pytest -n 2 -q "$@"
+# loadgroup: the tests of one xdist_group (the Ray cluster's) share a worker and its fixture.
+python -m pytest -n 2 --dist loadgroup -q "$@"

@@ -33,6 +33,8 @@ if TYPE_CHECKING:
     from collections.abc import Iterator
     from pathlib import Path
 
+pytestmark = pytest.mark.xdist_group("ray_cluster")  # one cluster, in one worker
+
 THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
 ORACLE = {"estimator": "oracle", "max_episode_steps": 12}
 
