@@ -236,6 +236,38 @@ def test_the_yaml_is_found_on_its_topic_or_where_older_senders_put_it() -> None:
     assert description_yaml({}, store) is None
 
 
+def test_the_robot_link_takes_the_yaml_from_either_topic() -> None:
+    """The driver checks the robot's description on its new topic, and on
+    /robot_description where an older robot sends its YAML; a URDF there is not
+    mistaken for it."""
+    from hardware.link.driver import ZenohDriver
+    from hardware.link.wire import LinkError
+    from tensegrity_gym.model.protocols import SensorCalibration
+
+    d = load_robot("three_bar")
+    n = d.n_nodes + len(d.anchors)
+    calibration = SensorCalibration(np.zeros((n, n)), d.anchors, d.sensors.camera.intrinsics,
+                                    np.eye(4))  # fmt: skip
+    driver = ZenohDriver(d, "zenoh/tcp/127.0.0.1:9")  # never connected
+    header = dict(driver.codec.encode_header(calibration, {"control_period": 0.1}, 0.0))
+    yaml_raw = header.pop(m.DESCRIPTION_YAML_TOPIC)
+    other = load_robot("superball")
+    store = m.typestore()
+    other_raw = bytes(store.serialize_cdr(store.types[m.STRING](data=dump_robot(other)), m.STRING))
+    for description_topics, refused in (
+        ({m.DESCRIPTION_YAML_TOPIC: yaml_raw}, False),  # with the URDF: today's robots
+        ({m.DESCRIPTION_TOPIC: yaml_raw}, False),  # an older robot: YAML, no URDF
+        ({m.DESCRIPTION_TOPIC: other_raw}, True),  # an older robot of another kind
+    ):
+        driver._header = {**header, **description_topics}
+        if refused:
+            with pytest.raises(LinkError, match="superball"):
+                driver._read_header()
+        else:
+            driver._read_header()
+            assert driver.calibration.anchors.shape == d.anchors.shape
+
+
 def test_view_streams_an_episode_and_stops() -> None:
     port = free_port()
     args = ["view", "--port", str(port), "--episodes", "1", "--steps", "3", "--speed", "0"]
