@@ -293,7 +293,7 @@ def _view(args: argparse.Namespace) -> int:
     from agents.view import view
 
     bag = Path(args.bag) if args.bag else None
-    view(args.env, args.policy, bag=bag, port=args.port, speed=args.speed,
+    view(args.env, args.policy, bag=bag, driver=args.driver, port=args.port, speed=args.speed,
          episodes=args.episodes, steps=args.steps, seed=args.seed,
          estimator=args.estimator)  # fmt: skip
     return 0
@@ -312,6 +312,7 @@ def _add_view(sub: Any, env_help: str) -> None:
                    help="scripted (the robot's face gait), random, or a training run "
                    "folder")  # fmt: skip
     v.add_argument("--bag", default=None, help="replay this bag instead (its commands drive it)")
+    v.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
     v.add_argument("--port", type=_count, default=DEFAULT_PORT, help="WebSocket port")
     v.add_argument("--speed", type=float, default=1.0,
                    help="run time per wall-clock time; 0: as fast as it runs")  # fmt: skip

@@ -428,3 +428,17 @@ def test_the_foxglove_layout_names_only_topics_a_recorded_bag_has(bag: Path) -> 
     read |= {c["imageMode"]["imageTopic"] for c in panels.values() if c.get("imageMode")}
     assert read - {output} <= topics, read - topics
     assert {m.MARKERS_TOPIC, m.NIS_TOPIC, output} <= read
+
+
+@pytest.mark.slow
+def test_view_streams_a_robot_on_the_link() -> None:
+    """The live view of a robot: the emulator on the network, driven by random actions
+    (slow: the emulator's start and the robot's settling, about 15 s)."""
+    from agents.view import view
+    from hardware.link.process import EmulatorProcess
+
+    port = free_port()
+    with EmulatorProcess("three_bar") as emulator:
+        done = view("tensegrity_gym/ThreeBarRollHardware-v0", "random", driver=emulator.address,
+                    port=port, episodes=1, steps=3)  # fmt: skip
+    assert done == 1 and _port_is_free(port)
