@@ -13,6 +13,7 @@ import scipy.stats
 from agents.calibration_run import estimated_uwb_calibration
 from agents.runs import record_run
 from estimation.ukf import SpringMassModel, UkfConfig, UkfEstimator
+from estimation.ukf.process_noise import ProcessNoise
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.kinematics import yaw_kabsch
 
@@ -200,6 +201,35 @@ def test_process_noise_per_node_and_on_the_ground() -> None:
         first_q(UkfConfig(node_noise_scale=(1.0, 2.0)))
     with pytest.raises(ValueError, match="node_noise_scale must be positive"):
         UkfConfig(node_noise_scale=(1.0, 0.0, 1.0, 1.0, 1.0, 1.0))
+
+
+def test_process_noise_is_the_driven_one_while_motors_move_and_a_hold_after() -> None:
+    """The motors moving faster than ``driven_speed`` switch Q to the driven noise, for
+    ``driven_hold`` seconds after they stop; an encoder's jitter does not."""
+    d = load_robot("three_bar")
+    config = UkfConfig(driven_hold=0.25)
+    noise = ProcessNoise(config, d)
+    n, L = d.n_nodes, d.characteristic_length
+    rest = d.rest_lengths[d.actuated]
+    heights = np.ones(n)  # off the ground
+
+    def position_rate(after: np.ndarray) -> float:
+        q = noise.variances(0.1, rest, after, heights)
+        assert q.shape == (6 * n,)
+        rates = q[: 3 * n] / 0.1
+        assert np.all(rates == rates[0])
+        return float(rates[0])
+
+    resting, driven = (config.position_noise * L) ** 2, (config.driven_position_noise * L) ** 2
+    assert position_rate(rest) == pytest.approx(resting)
+    jitter = rest + 0.5 * config.driven_speed * 0.1  # under the speed over the period
+    assert position_rate(jitter) == pytest.approx(resting)
+    assert position_rate(rest + 0.01) == pytest.approx(driven)  # 0.1 m/s
+    assert [position_rate(rest) for _ in range(3)] == pytest.approx([driven, driven, resting])
+    q = noise.variances(0.1, rest, rest + 0.01, heights)
+    np.testing.assert_allclose(q[3 * n :] / 0.1, (config.driven_velocity_noise * L) ** 2)
+    with pytest.raises(ValueError, match="driven_hold must be positive"):
+        UkfConfig(driven_hold=0.0)
 
 
 def test_a_stalled_links_backlog_is_not_fused_all_at_once() -> None:

@@ -26,6 +26,18 @@ class UkfConfig:
     """Process noise on node positions: std per sqrt(s), in rod lengths."""
     velocity_noise: float = 0.5
     """Process noise on node velocities: std per sqrt(s), in rod lengths per s."""
+    driven_position_noise: float = 0.025
+    """``position_noise`` while the robot is driven: an actuated rest length moving
+    faster than ``driven_speed``, or did so within ``driven_hold`` seconds. The model is
+    rougher for a rolling robot than a resting one (estimation/ukf/process_noise.py)."""
+    driven_velocity_noise: float = 1.0
+    """``velocity_noise`` while the robot is driven."""
+    driven_speed: float = 0.01
+    """Speed (m/s) of an actuated rest length above which the robot counts as driven
+    (an encoder's jitter of a tick stays under it)."""
+    driven_hold: float = 3.0
+    """Seconds after the motors stop that the robot still counts as driven: one set
+    tipping rolls on."""
     node_noise_scale: tuple[float, ...] | None = None
     """Per node (n,), a factor on both process noises: where the model is known to be
     rougher (an endcap carrying a payload, a worn cable's ends). None: 1 for every node."""
@@ -103,7 +115,9 @@ class UkfConfig:
 
     def __post_init__(self) -> None:
         positive = (
-            "position_noise", "velocity_noise", "axis_sigma", "range_sigma", "cable_sigma",
+            "position_noise", "velocity_noise", "driven_position_noise",
+            "driven_velocity_noise", "driven_speed", "driven_hold", "axis_sigma", "range_sigma",
+            "cable_sigma",
             "rod_length_sigma", "contact_sigma", "initial_position_sigma", "initial_shape_sigma",
             "initial_velocity_sigma", "range_window", "divergence_nis", "contact_noise_scale",
             "contact_band",

@@ -35,6 +35,7 @@ from estimation.ukf.config import UkfConfig
 from estimation.ukf.filter import UnscentedKalmanFilter, UpdateResult, single_threaded_blas
 from estimation.ukf.initialise import MIN_ANCHOR_RANGES, InitialisationError, fit_initial_shape
 from estimation.ukf.measurements import MeasurementBatch, MeasurementModel, RowKind
+from estimation.ukf.process_noise import ProcessNoise
 from estimation.ukf.readings import Readings, select_ranges
 from estimation.ukf.sigma_points import CholeskyError
 from estimation.ukf.spring_mass import SpringMassModel
@@ -54,19 +55,6 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.samples import Sample
 
 __all__ = ["FilterStep", "UkfConfig", "UkfDiagnostics", "UkfEstimator"]
-
-
-def _node_noise_scale(config: UkfConfig, d: RobotDescription) -> NDArray[np.float64]:
-    """(n,) the variance factor of each node's process noise from ``node_noise_scale``;
-    refused, naming both counts, where it does not list every node."""
-    if config.node_noise_scale is None:
-        return np.ones(d.n_nodes)
-    scale = np.asarray(config.node_noise_scale, dtype=np.float64)
-    if scale.shape != (d.n_nodes,):
-        raise ValueError(
-            f"UkfConfig.node_noise_scale has {scale.size} factors; {d.name} has {d.n_nodes} nodes"
-        )
-    return np.asarray(scale**2)
 
 
 log = logging.getLogger(__name__)
@@ -255,11 +243,7 @@ class UkfEstimator:
         self.model = SpringMassModel(d, c.model)
         anchors, self.offsets, self._module_allowed = _ranging(c, d, calibration)
         self.measurements = MeasurementModel(d, anchors, d.sensors.uwb.module_offset)
-        L = d.characteristic_length
-        self._q_pos = (c.position_noise * L) ** 2
-        self._q_vel = (c.velocity_noise * L) ** 2
-        self._node_q = _node_noise_scale(c, d)
-        self._contact_height = d.node_radii + c.contact_band
+        self.process_noise = ProcessNoise(c, d)
         rest = np.asarray(command, dtype=np.float64).copy()
         self.readings = self._readings(d, calibration, samples, rest)
         self.health = EstimatorHealth(c.health, self.readings.screen)
@@ -383,20 +367,9 @@ class UkfEstimator:
             r.rest = np.asarray(command, dtype=np.float64)
         dt_ns = max(r.t_ns - t_before, 0)
         dt = ns_to_seconds(dt_ns)
-        scale = np.repeat(self._process_noise_scale(), 3)
-        q = np.concatenate([scale * (self._q_pos * dt), scale * (self._q_vel * dt)])
+        heights = self.filter.x[2 : 3 * self.description.n_nodes : 3]
+        q = self.process_noise.variances(dt, rest_before, r.rest, heights)
         return FilterStep(dt, rest_before, r.rest.copy(), q, self._batch(rounds), dt_ns)
-
-    def _process_noise_scale(self) -> NDArray[np.float64]:
-        """Per node (n,), the factor on its process noise variances: its own, times the
-        square of ``contact_noise_scale`` where the estimate has it on the ground."""
-        c = self.config
-        if c.contact_noise_scale == 1.0:
-            return self._node_q
-        n = self.description.n_nodes
-        heights = self.filter.x[2 : 3 * n : 3]
-        touching = heights <= self._contact_height
-        return np.asarray(self._node_q * np.where(touching, c.contact_noise_scale**2, 1.0))
 
     def apply(self, step: FilterStep, ukf: UnscentedKalmanFilter) -> UpdateResult:
         """Predict ``ukf`` over the step's duration, then update it with its batch."""
