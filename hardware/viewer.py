@@ -30,7 +30,7 @@ if TYPE_CHECKING:
     from hardware.recording import Episode
     from tensegrity_gym.model.estimate import Estimate
 
-__all__ = ["DEFAULT_PORT", "INSTALL_HINT", "FoxgloveSink", "ViewerError"]
+__all__ = ["DEFAULT_PORT", "INSTALL_HINT", "FoxgloveSink", "ViewerError", "foxglove_module"]
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,8 @@ class ViewerError(RuntimeError):
     """The live view cannot start: no foxglove-sdk, or the port is taken."""
 
 
-def _foxglove() -> Any:
+def foxglove_module() -> Any:
+    """The ``foxglove`` package; :class:`ViewerError` with the install hint without it."""
     try:
         import foxglove
     except ImportError:
@@ -112,7 +113,7 @@ class FoxgloveSink(WriterSink):
         if not speed >= 0:
             raise ValueError(f"viewer speed must be 0 (no pacing) or positive, got {speed}")
         super().__init__(run_info, markers=markers, wall_clock=wall_clock)
-        foxglove = _foxglove()
+        foxglove = foxglove_module()
         self._foxglove = foxglove
         self._context = foxglove.Context()
         try:

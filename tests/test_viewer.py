@@ -407,27 +407,45 @@ def _check_stream(client: _Client) -> None:
     assert {"truth/rods", "estimate/rods", "truth/cables", "anchors", "goal"} <= namespaces
 
 
-def test_the_foxglove_layout_names_only_topics_a_recorded_bag_has(bag: Path) -> None:
-    """examples/foxglove_layout.json: every topic its panels and its script read is in the
-    robot's topic table (the script's output aside; the camera's only where an estimator
-    uses it), and its panels are the issue's."""
-    layout = json.loads(
-        (Path(__file__).parents[1] / "examples" / "foxglove_layout.json").read_text()
-    )
+def _named_topics(node: Any) -> set[str]:
+    """Every topic a Foxglove layout's panels name: plot series (the message path's
+    topic), topic settings, image and layer topics."""
+    found: set[str] = set()
+    if isinstance(node, list):
+        for item in node:
+            found |= _named_topics(item)
+    elif isinstance(node, dict):
+        for key, value in node.items():
+            if key == "value" and isinstance(value, str) and value.startswith("/"):
+                found.add(value.split(".")[0])
+            elif key in ("imageTopic", "topic") and isinstance(value, str):
+                found.add(value)
+            elif key == "topics" and isinstance(value, dict):
+                found |= set(value)
+            else:
+                found |= _named_topics(value)
+    return found
+
+
+def test_the_foxglove_layout_is_built_by_the_sdk_and_names_the_robots_topics(bag: Path) -> None:
+    """examples/foxglove_layout.json is what hardware.foxglove_layout builds with
+    foxglove-sdk's layout classes, and every topic it names is in the robot's topic
+    table (the camera's, where an estimator uses it) or is its script's output."""
+    from hardware.foxglove_layout import COM_ERROR_TOPIC, layout_json
+
+    path = Path(__file__).parents[1] / "examples" / "foxglove_layout.json"
+    assert path.read_text() == layout_json(), "run: python -m hardware.foxglove_layout " + str(path)
+    layout = json.loads(path.read_text())
     with BagReader(bag) as reader:
         topics = set(reader.codec.topics.types)
-    [script] = layout["userNodes"].values()
-    output = "/studio_script/com_error"
-    assert f'output = "{output}"' in script["sourceCode"]
+    [script] = layout["userScripts"].values()
     for name in ("/ground_truth/state", "/estimate/state"):
-        assert name in script["sourceCode"] and name in topics
-    panels = layout["configById"]
-    assert {p.split("!")[0] for p in panels} == {"3D", "Plot", "Image"}
-    read = {p["value"].split(".")[0] for c in panels.values() for p in c.get("paths", [])}
-    read |= {t for c in panels.values() for t in c.get("topics", {})}
-    read |= {c["imageMode"]["imageTopic"] for c in panels.values() if c.get("imageMode")}
-    assert read - {output} <= topics, read - topics
-    assert {m.MARKERS_TOPIC, m.NIS_TOPIC, output} <= read
+        assert f'"{name}"' in script["sourceCode"] and name in topics
+    named = _named_topics(layout["content"])
+    assert named - {COM_ERROR_TOPIC} <= topics, named - topics
+    assert {m.MARKERS_TOPIC, m.NIS_TOPIC, m.DESCRIPTION_TOPIC, COM_ERROR_TOPIC} <= named
+    panels = json.dumps(layout["content"])
+    assert all(f'"panelType": "{p}"' in panels for p in ("ThreeDee", "Plot", "Image"))
 
 
 @pytest.mark.slow
