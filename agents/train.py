@@ -261,7 +261,7 @@ def train(
 
     with cluster_session(ray_address):
         if workers is None:
-            cpus = int(require_ray().available_resources().get("CPU", 1))
+            cpus = int(require_ray().cluster_resources().get("CPU", 1))
             workers = max(1, min(envs, cpus))
         return _run(config, out, checkpoint_every, progress_bar, callbacks, workers)
 

@@ -195,6 +195,23 @@ def test_training_over_two_nodes_survives_a_killed_worker(
     assert "Ray worker 0 died" in warning and "1 worker restarts" in warning
 
 
+@pytest.mark.slow
+def test_a_run_is_the_same_over_one_worker_or_two(cluster: str, tmp_path: Path) -> None:
+    from stable_baselines3 import PPO
+
+    config = _tiny_config(tmp_path, n_steps=128, batch_size=128, n_epochs=1)
+    weights = []
+    for workers in (1, 2):
+        model = train(
+            THREE_BAR, "ppo", "oracle", tmp_path / str(workers), timesteps=512, seed=5,
+            n_envs=2, config_file=config, progress_bar=False,
+            env_kwargs={"max_episode_steps": 40}, ray_address=cluster, workers=workers,
+        )  # fmt: skip
+        weights.append(PPO.load(model).policy.state_dict())
+    for name, value in weights[0].items():
+        assert value.equal(weights[1][name]), name
+
+
 def test_an_unreachable_cluster_is_one_line_within_the_timeout(tmp_path: Path) -> None:
     run = subprocess.run(
         [sys.executable, "-m", "agents.cli", "train", "--ray", "127.0.0.1:9", "--out",

@@ -129,11 +129,11 @@ class RayVecEnv(VecEnv):
         ray = require_ray()
         if not 1 <= workers <= n_envs:
             raise ValueError(f"workers ({workers}) must be between 1 and n_envs ({n_envs})")
-        free = ray.available_resources().get("CPU", 0.0)
-        if workers * num_cpus > free:
+        cpus = ray.cluster_resources().get("CPU", 0.0)
+        if workers * num_cpus > cpus:
             raise ValueError(
                 f"{workers} workers of {num_cpus:g} CPU each do not fit the cluster's "
-                f"{free:g} free CPUs: fewer --workers, or more nodes"
+                f"{cpus:g} CPUs: fewer --workers, or more nodes"
             )
         self.slices = [
             slice(int(part[0]), int(part[-1]) + 1)
