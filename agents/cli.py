@@ -78,16 +78,26 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from agents.main_job import run_main_job
+    from agents.main_job import run_main_job, run_main_job_seeds
 
-    report = run_main_job(
-        Path(args.out),
-        ukf_timesteps=args.timesteps,
-        oracle_timesteps=args.oracle_timesteps,
-        episodes=args.episodes,
-        seed=args.seed,
-        progress_bar=not args.no_progress,
-    )
+    budget = {
+        "ukf_timesteps": args.timesteps,
+        "oracle_timesteps": args.oracle_timesteps,
+        "episodes": args.episodes,
+        "progress_bar": not args.no_progress,
+    }
+    if args.seeds:
+        summary = run_main_job_seeds(Path(args.out), args.seeds, **budget)
+        sys.stdout.write(f"over seeds {summary['seeds']}: {Path(args.out) / 'seeds.md'}\n")
+        for policy, by_condition in summary["results"].items():
+            progress = by_condition.get("ukf", {}).get("progress_mean_m")
+            if progress is not None:
+                sys.stdout.write(
+                    f"  {policy} under ukf: progress {progress['mean']:.2f} ± "
+                    f"{progress['std']:.2f} m [{progress['min']:.2f}, {progress['max']:.2f}]\n"
+                )
+        return 0
+    report = run_main_job(Path(args.out), seed=args.seed, **budget)
     sys.stdout.write(f"report: {Path(args.out) / 'report' / 'report.md'}\n")
     for name, check in report["checks"].items():
         sys.stdout.write(
@@ -383,7 +393,15 @@ def _add_training(sub: Any, env_help: str) -> None:
     demo.add_argument(
         "--episodes", type=_positive_int, default=5, help="evaluation episodes per row"
     )
-    demo.add_argument("--seed", type=int, default=0, help="seeds training and evaluation")
+    seeding = demo.add_mutually_exclusive_group()
+    seeding.add_argument("--seed", type=int, default=0, help="seeds training and evaluation")
+    seeding.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        help="run the demo once per seed (into OUT/seed_<s>) and report mean ± spread "
+        "across them in OUT/seeds.md",
+    )
     demo.add_argument("--out", default="demo_out", help="folder for the runs and the report")
     demo.add_argument("--no-progress", action="store_true", help="no progress bars")
     demo.set_defaults(func=_demo)

@@ -9,13 +9,16 @@ import logging
 import time
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from agents.report import write_report
 from agents.train import train
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
     from pathlib import Path
 
-__all__ = ["run_main_job"]
+__all__ = ["across_seeds", "run_main_job", "run_main_job_seeds"]
 
 log = logging.getLogger(__name__)
 
@@ -57,3 +60,72 @@ def run_main_job(
     report["timing_s"] = timing
     (out / "report" / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
+
+
+SEED_FIGURES = ("progress_mean_m", "rolls_per_episode", "success_rate", "com_error_mean_m")
+"""The per-policy, per-condition figures :func:`across_seeds` gathers."""
+
+
+def across_seeds(reports: dict[int, dict[str, Any]]) -> dict[str, Any]:
+    """The figures of several seeds' reports (seed -> :func:`run_main_job`'s report):
+    per policy and condition, each of :data:`SEED_FIGURES` as its mean, standard
+    deviation, least and greatest over the seeds, and the seeds' own values."""
+    seeds = sorted(reports)
+    first = reports[seeds[0]]["results"]
+    table: dict[str, Any] = {}
+    for policy, by_condition in first.items():
+        table[policy] = {}
+        for cond in by_condition:
+            table[policy][cond] = {}
+            for key in SEED_FIGURES:
+                values = np.array([reports[s]["results"][policy][cond][key] for s in seeds])
+                table[policy][cond][key] = {
+                    "mean": round(float(values.mean()), 4),
+                    "std": round(float(values.std()), 4),
+                    "min": round(float(values.min()), 4),
+                    "max": round(float(values.max()), 4),
+                    "per_seed": values.round(4).tolist(),
+                }
+    return {"seeds": seeds, "results": table}
+
+
+def run_main_job_seeds(out: Path, seeds: Sequence[int], **kwargs: Any) -> dict[str, Any]:
+    """:func:`run_main_job` once per seed (into ``out/seed_<s>``), then the figures
+    across them (:func:`across_seeds`), written to ``out/seeds.json`` and ``out/seeds.md``."""
+    if len(set(seeds)) != len(seeds) or not seeds:
+        raise ValueError(f"demo --seeds: give distinct seeds, got {list(seeds)}")
+    reports = {s: run_main_job(out / f"seed_{s}", seed=s, **kwargs) for s in seeds}
+    summary = across_seeds(reports)
+    summary["timing_s"] = {s: r["timing_s"] for s, r in reports.items()}
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "seeds.json").write_text(json.dumps(summary, indent=2) + "\n")
+    (out / "seeds.md").write_text(_seeds_markdown(summary))
+    return summary
+
+
+def _seeds_markdown(summary: dict[str, Any]) -> str:
+    """The table of :func:`across_seeds`: mean ± standard deviation [least, greatest]."""
+    lines = [
+        f"# The demo over seeds {', '.join(map(str, summary['seeds']))}",
+        "",
+        "Mean ± standard deviation over the seeds [least, greatest]; each seed's report "
+        "is in its `seed_<s>/report` folder.",
+        "",
+        "| policy | condition | progress (m) | rolls / ep. | success | CoM error (cm) |",
+        "|---|---|---|---|---|---|",
+    ]
+
+    def cell(f: dict[str, float], scale: float = 1.0) -> str:
+        return (
+            f"{scale * f['mean']:.2f} ± {scale * f['std']:.2f} "
+            f"[{scale * f['min']:.2f}, {scale * f['max']:.2f}]"
+        )
+
+    for policy, by_condition in summary["results"].items():
+        for cond, f in by_condition.items():
+            lines.append(
+                f"| {policy} | {cond} | {cell(f['progress_mean_m'])} "
+                f"| {cell(f['rolls_per_episode'])} | {cell(f['success_rate'])} "
+                f"| {cell(f['com_error_mean_m'], 100.0)} |"
+            )
+    return "\n".join(lines) + "\n"

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 import pickle
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -14,11 +15,9 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import tensegrity_gym  # noqa: F401
 from agents.evaluate import CONDITIONS, count_rolls, evaluate_policy, load_policy
+from agents.main_job import across_seeds, run_main_job_seeds
 from agents.report import write_report
 from agents.train import load_hyperparams, parse_config_value, train
-
-if TYPE_CHECKING:
-    from pathlib import Path
 
 THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
 
@@ -274,3 +273,37 @@ def test_record_takes_a_training_run_as_its_policy(tiny_run: Path) -> None:
     env.close()
     with pytest.raises(ValueError, match="no training run at that path"):
         make_policy("nowhere/run", env, 0)
+
+
+def test_figures_across_seeds_give_mean_spread_and_each_seed() -> None:
+    def report(progress: float, rolls: float) -> dict[str, Any]:
+        row = {
+            "progress_mean_m": progress,
+            "rolls_per_episode": rolls,
+            "success_rate": 0.5,
+            "com_error_mean_m": 0.01,
+        }
+        return {"results": {"trained on ukf": {"ukf": row, "oracle": row}}}
+
+    summary = across_seeds({2: report(0.3, 1.0), 0: report(0.1, 3.0)})
+    assert summary["seeds"] == [0, 2]
+    progress = summary["results"]["trained on ukf"]["ukf"]["progress_mean_m"]
+    assert progress == {"mean": 0.2, "std": 0.1, "min": 0.1, "max": 0.3, "per_seed": [0.1, 0.3]}
+    rolls = summary["results"]["trained on ukf"]["oracle"]["rolls_per_episode"]
+    assert rolls["mean"] == 2.0 and rolls["per_seed"] == [3.0, 1.0]
+    with pytest.raises(ValueError, match="distinct seeds"):
+        run_main_job_seeds(Path("unused"), [1, 1])
+
+
+@pytest.mark.slow
+def test_the_demo_over_two_seeds_writes_each_report_and_the_summary(tmp_path: Path) -> None:
+    summary = run_main_job_seeds(
+        tmp_path, [0, 1], ukf_timesteps=256, oracle_timesteps=0, episodes=1, progress_bar=False
+    )
+    assert summary["seeds"] == [0, 1]
+    for seed in (0, 1):
+        assert (tmp_path / f"seed_{seed}" / "report" / "report.md").exists()
+    gait = summary["results"]["scripted gait"]["ukf"]["progress_mean_m"]
+    assert len(gait["per_seed"]) == 2 and gait["min"] <= gait["mean"] <= gait["max"]
+    text = (tmp_path / "seeds.md").read_text()
+    assert "| scripted gait | ukf |" in text and "±" in text
