@@ -283,7 +283,10 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
 
     files = [f for f in (model_file, config_file, stats_file) if f.exists()]
     saved = {f.name: f.read_bytes() for f in files}
-    return LoadedPolicy(name or f"trained on {trained_on}", env_id, trained_on, act, saved=saved)
+    # The report says which worlds a policy trained in (gym.make's randomization).
+    worlds = (config.get("env_kwargs") or {}).get("randomization")
+    default = f"trained on {trained_on}" + (f" in {worlds} worlds" if worlds else "")
+    return LoadedPolicy(name or default, env_id, trained_on, act, saved=saved)
 
 
 class _RandomActions:

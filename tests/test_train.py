@@ -307,3 +307,20 @@ def test_the_demo_over_two_seeds_writes_each_report_and_the_summary(tmp_path: Pa
     assert len(gait["per_seed"]) == 2 and gait["min"] <= gait["mean"] <= gait["max"]
     text = (tmp_path / "seeds.md").read_text()
     assert "| scripted gait | ukf |" in text and "±" in text
+
+
+def test_a_policy_trained_in_randomised_worlds_is_named_so(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    train(
+        THREE_BAR,
+        "ppo",
+        "oracle",
+        out,
+        timesteps=64,
+        seed=3,
+        config_file=_tiny_config(tmp_path),
+        progress_bar=False,
+        env_kwargs={"max_episode_steps": 20, "randomization": "mild"},
+    )
+    assert load_policy(out).name == "trained on oracle in mild worlds"
+    assert load_policy(out, "mine").name == "mine"
