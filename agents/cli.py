@@ -369,7 +369,7 @@ def _add_ray(parser: argparse.ArgumentParser, what: str) -> None:
         "--ray",
         default=None,
         metavar="ADDRESS",
-        help=f"run {what} on the Ray cluster at ADDRESS (HOST:PORT of `ray start --head`, "
+        help=f"{what}, on the Ray cluster at ADDRESS (HOST:PORT of `ray start --head`, "
         "auto, or local: a Ray instance started here); needs pip install tensegrity-gym[ray]",
     )
 
@@ -423,7 +423,7 @@ def _add_training(sub: Any, env_help: str) -> None:
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")
-    _add_ray(tr, "the envs, on --workers actors")
+    _add_ray(tr, "step the envs on --workers Ray actors")
     tr.add_argument("--workers", type=_positive_int, default=None,
                     help="Ray actors sharing the --n-envs envs (default: one per CPU of the "
                     "cluster, at most --n-envs); with --ray only")  # fmt: skip
@@ -443,7 +443,7 @@ def _add_training(sub: Any, env_help: str) -> None:
     )
     ev.add_argument("--seed", type=int, default=1000, help="episode k uses seed + k")
     ev.add_argument("--out", required=True, help="folder for the report")
-    _add_ray(ev, "the episodes, one Ray task each,")
+    _add_ray(ev, "run each episode as a Ray task")
     ev.set_defaults(func=_evaluate)
 
     gait = sub.add_parser("gait", help="roll a robot with its scripted gait; plot the CoM")
@@ -503,7 +503,7 @@ def _add_bench(sub: Any) -> None:
         default=0.0,
         help="minutes of emulated operation watched for memory and latency growth",
     )
-    _add_ray(bench, "--estimation's replays, and also measure the Ray vec env (--ray part),")
+    _add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
     bench.set_defaults(func=_bench)
 
@@ -557,7 +557,7 @@ def _add_recordings(sub: Any, env_help: str) -> None:
         default=None,
         help="a UWB calibration file (tensegrity-gym calibrate) to use instead of the bag's",
     )
-    _add_ray(est, "one Ray task per bag (bags on a path every node reads)")
+    _add_ray(est, "run each bag as a Ray task (the bags on a path every node reads)")
     est.set_defaults(func=_estimate)
 
     cal = sub.add_parser(
