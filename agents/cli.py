@@ -34,6 +34,22 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _env_kwargs(args: argparse.Namespace, *names: str) -> dict[str, Any]:
+    """The ``gym.make`` arguments among ``names`` that the command line gave."""
+    return {n: getattr(args, n) for n in names if getattr(args, n) is not None}
+
+
+def _positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Each option's default after its help, where it has one (not None, not a flag's
     False: those help texts say what their absence means)."""
@@ -122,7 +138,7 @@ def _train(args: argparse.Namespace) -> int:
             n_envs=args.n_envs,
             config_file=Path(args.config) if args.config else None,
             progress_bar=not args.no_progress,
-            env_kwargs={"randomization": args.randomization} if args.randomization else None,
+            env_kwargs=_env_kwargs(args, "randomization", "residual_gait"),
             ray_address=args.ray,
             workers=args.workers,
         )
@@ -420,6 +436,11 @@ def _add_training(sub: Any, env_help: str) -> None:
     tr.add_argument(
         "--randomization", default=None, choices=sorted(RANDOMIZATIONS),
         help="train in worlds drawn from these ranges at each reset (default: none)",
+    )  # fmt: skip
+    tr.add_argument(
+        "--residual-gait", type=_positive_float, default=None, metavar="SCALE",
+        help="actions correct the robot's scripted gait, scaled by SCALE "
+        "(gym.make(residual_gait=)); default: actions are the rest-length targets",
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -55,6 +55,10 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+ACTION_KWARGS = ("residual_gait",)
+"""The ``gym.make`` arguments of a training run that say what its actions mean: its
+policy is evaluated with them."""
+
 RANDOM_POLICY = "random"
 GAIT_POLICY = "scripted gait"
 BASELINES = (RANDOM_POLICY, GAIT_POLICY)
@@ -217,6 +221,9 @@ class LoadedPolicy:
     """Called with the episode's seed before it starts: a policy that draws reseeds, so
     that an episode's actions depend on its seed alone, wherever and in whatever order
     the episodes run."""
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
+    """What its actions mean, as ``gym.make`` takes it (:data:`ACTION_KWARGS` of its
+    training run's env): every condition's env is made with these."""
     saved: dict[str, bytes] | None = field(default=None, repr=False)
     """A trained policy's files (``model.zip``, ``config.yaml``, ``vecnormalize.pkl``):
     it is pickled (sent to a Ray worker) as these and loaded again there."""
@@ -284,9 +291,11 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
     files = [f for f in (model_file, config_file, stats_file) if f.exists()]
     saved = {f.name: f.read_bytes() for f in files}
     # The report says which worlds a policy trained in (gym.make's randomization).
-    worlds = (config.get("env_kwargs") or {}).get("randomization")
+    env_kwargs = config.get("env_kwargs") or {}
+    worlds = env_kwargs.get("randomization")
     default = f"trained on {trained_on}" + (f" in {worlds} worlds" if worlds else "")
-    return LoadedPolicy(name or default, env_id, trained_on, act, saved=saved)
+    actions = {k: env_kwargs[k] for k in ACTION_KWARGS if env_kwargs.get(k) is not None}
+    return LoadedPolicy(name or default, env_id, trained_on, act, env_kwargs=actions, saved=saved)
 
 
 class _RandomActions:
@@ -423,14 +432,17 @@ def evaluate_policies(
     return results
 
 
-_ENV: dict[tuple[str, Condition], gym.Env[Any, Any]] = {}
-"""The env of the last (env id, condition) this process ran an episode under: the next
-episodes under the same reuse it (an episode depends on its seed alone)."""
+_ENV: dict[tuple[Any, ...], gym.Env[Any, Any]] = {}
+"""The env of the last (env id, condition, action arguments) this process ran an episode
+under: the next episodes under the same reuse it (an episode depends on its seed alone)."""
 
 
-def _condition_env(env_id: str, condition: Condition) -> gym.Env[Any, Any]:
-    """The env of ``env_id`` under ``condition``, made once per process and condition."""
-    key = (env_id, condition)
+def _condition_env(
+    env_id: str, condition: Condition, env_kwargs: dict[str, Any]
+) -> gym.Env[Any, Any]:
+    """The env of ``env_id`` under ``condition`` whose actions mean what ``env_kwargs``
+    (:attr:`LoadedPolicy.env_kwargs`) says, made once per process and condition."""
+    key = (env_id, condition, tuple(sorted(env_kwargs.items())))
     if key not in _ENV:
         _release_env()
         robot = gym.spec(env_id).kwargs.get("robot", "three_bar")
@@ -443,6 +455,7 @@ def _condition_env(env_id: str, condition: Condition) -> gym.Env[Any, Any]:
             estimator=condition.estimator,
             calibration=condition.calibration,
             randomization=condition.randomization,
+            **env_kwargs,
         )
     return _ENV[key]
 
@@ -460,7 +473,7 @@ def _episode(
     """One episode, ``job`` = (policy index, condition index, seed): the job that
     :func:`evaluate_policies` maps, here or on a Ray worker."""
     policy, condition = policies[job[0]], conditions[job[1]]
-    env = _condition_env(policy.env_id, condition)
+    env = _condition_env(policy.env_id, condition, policy.env_kwargs)
     policy.new_episode(job[2])
     try:
         return run_episode(env, policy.act, job[2])

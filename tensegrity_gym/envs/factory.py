@@ -10,12 +10,13 @@ from typing import TYPE_CHECKING, Any
 from tensegrity_gym.envs.calibration import apply_calibration, check_calibration
 from tensegrity_gym.envs.roll_env import TensegrityEnv
 from tensegrity_gym.model.checks import check_number
-from tensegrity_gym.model.description import RobotDescription, load_robot
+from tensegrity_gym.model.description import DEFAULT_GAIT, RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
 from tensegrity_gym.model.randomization import Randomization, resolve_randomization
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
 from tensegrity_gym.sim.terrain import Terrain, terrain_builder
 from tensegrity_gym.sim.world import has_display
+from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -208,6 +209,7 @@ def make_env(
     randomization: str | Randomization | None = None,
     viewer_port: int = 8765,
     viewer_speed: float = 1.0,
+    residual_gait: float | None = None,
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -251,6 +253,12 @@ def make_env(
             :class:`~tensegrity_gym.model.randomization.Randomization`: each reset draws
             the simulated robot and world from its ranges (``info["randomization"]``);
             the estimators keep the nominal description.
+        residual_gait: ``None``: an action is the rest-length targets; a scale: an
+            action corrects the robot's scripted gait
+            (:class:`~tensegrity_gym.tasks.gaits.FaceGait`, reading the same
+            observation), the env commanding ``gait + residual_gait * action`` clipped
+            to [-1, 1] (residual actions: a policy starts from the gait and learns to
+            do better). The robot must have a gait.
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -269,6 +277,12 @@ def make_env(
         driver=driver,
     )
     check_calibration(calibration, world_seed)
+    if residual_gait is not None:
+        check_number("residual_gait", residual_gait, positive=True)
+        if DEFAULT_GAIT not in description.gaits:
+            raise ValueError(
+                f"make: residual_gait corrects the robot's gait; {description.name} has none"
+            )
     ranges = resolve_randomization(randomization)
     # The task checks its own arguments before anything is started.
     spec.create(description, control_period, task_arguments)
@@ -289,8 +303,12 @@ def make_env(
             time_step=time_step,
         )  # fmt: skip
         viewer = {"port": viewer_port, "speed": viewer_speed}
-        return _assemble(backend, estimator, spec, description, task_arguments, record_dir,
-                         render_mode, source, viewer)  # fmt: skip
+        env = _assemble(backend, estimator, spec, description, task_arguments, record_dir,
+                        render_mode, source, viewer)  # fmt: skip
+        if residual_gait is not None:
+            env.action_base = FaceGait(description, env.task)
+            env.residual_scale = float(residual_gait)
+        return env
     except BaseException:
         backend.close()  # nothing half made stays open: a simulator, a link session
         raise

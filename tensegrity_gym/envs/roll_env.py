@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.estimate import Estimate
-    from tensegrity_gym.model.protocols import Backend, Estimator, StepResult, Task
+    from tensegrity_gym.model.protocols import ActionBase, Backend, Estimator, StepResult, Task
     from tensegrity_gym.model.samples import Sample
 
 __all__ = ["TensegrityEnv"]
@@ -61,6 +61,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         render_mode: str | None = None,
         render_size: tuple[int, int] = (480, 360),
         calibration: str = "estimated",
+        action_base: ActionBase | None = None,
+        residual_scale: float = 1.0,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -73,6 +75,10 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self.render_size = render_size
         self.calibration = calibration
         """Where the estimators' UWB calibration comes from (``info["calibration"]``)."""
+        self.action_base = action_base
+        """None: an action is the rest-length targets; else the targets are this
+        controller's action plus ``residual_scale`` times the policy's (residual)."""
+        self.residual_scale = residual_scale
         d = backend.description
         self.action_space = spaces.Box(-1.0, 1.0, (d.n_actuated,), dtype=np.float32)
         self.observation_space = task.observation_space
@@ -185,6 +191,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         )
         task_reset: Any = self.task.reset  # a task without options takes none
         task_reset(estimate, self.np_random, **task_options)
+        if self.action_base is not None:
+            self.action_base.reset()
         self._estimate = estimate
         self._observation = self.task.observation(estimate)
         if self.render_mode == "human":
@@ -233,6 +241,9 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._estimate is None or self._observation is None:
             raise RuntimeError("call reset() before step() (and again after a reset that failed)")
         a = self._check_action(action)
+        if self.action_base is not None:  # the policy corrects the scripted controller
+            base = np.asarray(self.action_base(self._observation), dtype=np.float64)
+            a = np.clip(base + self.residual_scale * a, -1.0, 1.0)
         targets = self.action_to_targets(a)
         result = self.backend.step(targets)
         if result.diverged:

@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
 __all__ = [
+    "ActionBase",
     "Backend",
     "Estimator",
     "InitialisationCheck",
@@ -172,6 +173,17 @@ class Estimator(Protocol):
 
 
 @runtime_checkable
+class ActionBase(Protocol):
+    """A scripted controller whose actions a policy's correct (residual actions): the
+    env commands ``base(observation) + scale * action``, clipped to [-1, 1]. Reset at
+    every episode's start; called with the observation the policy saw, returns an action
+    (m,) in [-1, 1]. :class:`~tensegrity_gym.tasks.gaits.FaceGait` is one."""
+
+    def reset(self) -> None: ...
+
+    def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]: ...
+
+
 class Task(Protocol):
     """What the robot is asked to do: the observation, the reward and the end of an
     episode, all computed from the estimator's :class:`Estimate` (never ground truth).

@@ -1,0 +1,97 @@
+"""Residual actions (``gym.make(..., residual_gait=SCALE)``): a policy's action corrects
+the robot's scripted gait; trained so, it is evaluated so."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import tensegrity_gym  # noqa: F401  (registers the envs)
+from agents.evaluate import _condition_env, _release_env, condition, load_policy
+from agents.train import train
+from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.tasks.gaits import FaceGait
+
+if TYPE_CHECKING:
+    from pathlib import Path
+
+THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
+
+
+def _com_after(env: gym.Env, act, steps: int = 40) -> np.ndarray:  # type: ignore[no-untyped-def, type-arg]
+    obs, info = env.reset(seed=4)
+    for _ in range(steps):
+        obs, _, _, _, info = env.step(act(obs))
+    env.close()
+    return np.asarray(info["com_true"])
+
+
+def test_a_zero_correction_is_the_gait_bit_for_bit() -> None:
+    residual = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5)
+    zeros = np.zeros(residual.action_space.shape, dtype=np.float32)
+    plain = gym.make(THREE_BAR, estimator="oracle")
+    inner = plain.unwrapped
+    gait = FaceGait(inner.backend.description, inner.task)  # type: ignore[attr-defined]
+    on_its_own = _com_after(plain, gait)
+    assert np.array_equal(_com_after(residual, lambda obs: zeros), on_its_own)
+    # The gait rolled the robot; a correction changes where it goes.
+    assert np.linalg.norm(on_its_own[:2]) > 0.1
+    against = gym.make(THREE_BAR, estimator="oracle", residual_gait=1.0)
+    full = np.ones(against.action_space.shape, dtype=np.float32)
+    assert not np.allclose(_com_after(against, lambda obs: full), on_its_own)
+
+
+def test_the_residual_env_passes_gymnasiums_checks() -> None:
+    env = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5)
+    check_env(env.unwrapped, skip_render_check=True)
+    env.close()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"residual_gait": 0.0}, "residual_gait=0.0 must be a finite number and > 0"),
+        ({"residual_gait": "big"}, "residual_gait='big' must be a finite number"),
+        (
+            {"residual_gait": 0.5, "robot": replace(load_robot("three_bar"), gait=None)},
+            "three_bar has none",
+        ),
+    ],
+)
+def test_bad_residual_arguments_are_refused(kwargs: dict[str, object], message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        gym.make(THREE_BAR, estimator="oracle", **kwargs)
+
+
+def test_a_policy_trained_on_residual_actions_is_evaluated_on_them(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    config = tmp_path / "ppo.yml"
+    config.write_text(
+        f"{THREE_BAR}:\n  n_envs: 1\n  n_steps: 32\n  batch_size: 32\n  n_epochs: 1\n"
+        "  policy: MlpPolicy\n"
+    )
+    train(
+        THREE_BAR,
+        "ppo",
+        "oracle",
+        out,
+        timesteps=32,
+        seed=1,
+        config_file=config,
+        progress_bar=False,
+        env_kwargs={"max_episode_steps": 16, "residual_gait": 0.25},
+    )
+    policy = load_policy(out)
+    assert policy.env_kwargs == {"residual_gait": 0.25}
+    try:
+        env = _condition_env(policy.env_id, condition("oracle"), policy.env_kwargs).unwrapped
+        assert isinstance(env.action_base, FaceGait) and env.residual_scale == 0.25  # type: ignore[attr-defined]
+        plain = _condition_env(policy.env_id, condition("oracle"), {}).unwrapped
+        assert plain.action_base is None  # type: ignore[attr-defined]
+    finally:
+        _release_env()
