@@ -227,6 +227,7 @@ def test_an_unreachable_cluster_is_one_line_within_the_timeout(tmp_path: Path) -
 # ---------------------------------------------------------------------- evaluation
 
 
+@pytest.mark.filterwarnings("ignore:No artists with labels")  # the report's error plot: no UKF
 def test_evaluation_on_ray_gives_the_numbers_it_gives_here(
     ray_run: tuple[Path, _KillOneWorker], tmp_path: Path
 ) -> None:
