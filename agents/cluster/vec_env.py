@@ -27,6 +27,7 @@ from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from gymnasium import spaces as gym_spaces
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
 from agents.cluster import require_ray
@@ -110,7 +111,8 @@ class EnvWorker:
 class RayVecEnv(VecEnv):
     """``n_envs`` envs of ``env_id`` on ``workers`` Ray actors (the first ones get one
     env more where ``n_envs`` does not divide), spread over the nodes of the connected
-    cluster (Ray's ``SPREAD`` scheduling), each actor taking ``num_cpus`` CPUs.
+    cluster (Ray's ``SPREAD`` scheduling), each actor taking ``num_cpus`` CPUs. The
+    observations are Box arrays, (n_envs, *shape) as SB3 has them.
 
     Needs ``ray.init`` done (:func:`agents.cluster.cluster_session`).
     """
@@ -157,6 +159,9 @@ class RayVecEnv(VecEnv):
             raise TimeoutError(
                 f"the {workers} Ray workers did not start within {START_TIMEOUT_S:g} s"
             ) from None
+        if not isinstance(spaces[0][0], gym_spaces.Box):
+            self.close()
+            raise ValueError(f"{env_id}: the Ray vec env takes Box observations only")
         self._base_seed = seed
         self._last_obs: NDArray[Any] | None = None
         self._pending: list[Any] = []
