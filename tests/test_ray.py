@@ -106,6 +106,7 @@ def test_env_method_get_set_attr_seed_and_wrappers(vec: RayVecEnv) -> None:
     assert vec.get_attr("lab_note", indices=[2, 1]) == ["a", "b"]
     spaces = vec.env_method("get_wrapper_attr", "action_space", indices=[1, 2])
     assert spaces == [vec.action_space] * 2
+    assert vec.env_method("get_wrapper_attr", name="render_mode", indices=0) == [None]
     assert vec.env_is_wrapped(TimeLimit) == [True] * 3
     assert vec.env_is_wrapped(Monitor, indices=[0]) == [False]  # the Monitor log is kept here
     with pytest.raises(AttributeError):
