@@ -41,12 +41,14 @@ ORACLE = {"estimator": "oracle", "max_episode_steps": 12}
 
 @pytest.fixture(scope="module")
 def cluster() -> Iterator[str]:
-    """Two Ray nodes of 2 CPUs each on this machine; the address of the head."""
+    """Two Ray nodes of 2 CPUs each on this machine, each with a small object store
+    (what the tests pass is small); the address of the head."""
     from ray.cluster_utils import Cluster
 
-    made = Cluster(initialize_head=True, head_node_args={"num_cpus": 2})
+    node = {"num_cpus": 2, "object_store_memory": 100 * 1024**2}
+    made = Cluster(initialize_head=True, head_node_args=node)
     try:
-        made.add_node(num_cpus=2)
+        made.add_node(**node)
         ray.init(address=made.address, include_dashboard=False, log_to_driver=False)
         yield made.address
     finally:
