@@ -27,7 +27,12 @@ from estimation.health import EstimatorHealth
 from estimation.inekf.config import InekfConfig, noise_from_description
 from estimation.inekf.contacts import ContactThresholds, ShapeContactDetector
 from estimation.inekf.filter import RightInvariantEkf
-from estimation.inekf.initialise import base_imu_readings, initial_position, triad_orientation
+from estimation.inekf.initialise import (
+    base_imu_readings,
+    initial_position,
+    levelled,
+    triad_orientation,
+)
 from estimation.inekf.shape import ShapeReconstructor
 from estimation.plausibility import PlausibilityBounds
 from estimation.screen import PlausibilityScreen
@@ -364,14 +369,17 @@ class InekfEstimator:
         self._restart()
 
     def _restart(self) -> None:
-        """Start again from the IMU's current reading, where the estimate last was (the
-        best guess a dead-reckoning estimator has), at rest, uncertain."""
+        """Start again where the estimate last was (the best guess a dead-reckoning
+        estimator has), at rest, uncertain: tilted as the base rod's low-passed
+        accelerometer says, heading kept (levelled from the TRIAD of its accelerometer
+        took the body x axis for north: 90 degrees off, and never found again)."""
         f = self.filter
         assert f is not None
         last = self._last_position if np.all(np.isfinite(self._last_position)) else np.zeros(3)
-        d = self.description
-        field = np.asarray(d.sensors.imu.magnetic_field, dtype=np.float64)
-        R = triad_orientation(self._accel, np.zeros(3), field)
+        up = self._rod_accel[self.config.base_rod]
+        up = up if np.all(np.isfinite(up)) else self._accel
+        R = f.rotation if np.all(np.isfinite(f.rotation)) else np.eye(3)
+        R = levelled(R, up)
         P = self._initial_covariance(R) * 100.0
         bias = f.gyro_bias if np.all(np.isfinite(f.gyro_bias)) else np.zeros(3)
         f.reset(R, np.zeros(3), last, bias, np.zeros(3), P)

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from tensegrity_gym.model.kinematics import center_of_mass
+from tensegrity_gym.model.lie import so3_exp
 from tensegrity_gym.model.samples import ImuSample
 
 if TYPE_CHECKING:
@@ -26,7 +27,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.samples import Sample
 
-__all__ = ["base_imu_readings", "initial_position", "triad_orientation"]
+__all__ = ["base_imu_readings", "initial_position", "levelled", "triad_orientation"]
 
 
 def base_imu_readings(
@@ -48,6 +49,22 @@ def base_imu_readings(
 def _unit(v: NDArray[np.float64]) -> NDArray[np.float64] | None:
     n = float(np.linalg.norm(v))
     return v / n if np.isfinite(n) and n > 1e-12 else None
+
+
+def levelled(R: NDArray[np.float64], accel: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The body-to-world rotation (3, 3) nearest ``R`` under which the specific force
+    ``accel`` (3,) (up, in the body frame) points up: ``R`` turned by the least rotation
+    that takes its up onto the world's, so that its heading is kept. ``R`` itself where
+    ``accel`` gives no direction."""
+    up_b = _unit(accel)
+    if up_b is None:
+        return R
+    a, b = R @ up_b, np.array([0.0, 0.0, 1.0])
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(a @ b)
+    if sin < 1e-12:  # already up, or upside down: half a turn about a horizontal axis
+        return R if cos > 0 else so3_exp(np.array([np.pi, 0.0, 0.0])) @ R
+    return np.asarray(so3_exp(axis / sin * np.arctan2(sin, cos)) @ R)
 
 
 def triad_orientation(
