@@ -15,6 +15,7 @@ import tensegrity_gym  # noqa: F401  (registers the envs)
 from agents.evaluate import _condition_env, _release_env, condition, load_policy
 from agents.train import train
 from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.model.protocols import ActionBase
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -91,6 +92,7 @@ def test_a_policy_trained_on_residual_actions_is_evaluated_on_them(tmp_path: Pat
     try:
         env = _condition_env(policy.env_id, condition("oracle"), policy.env_kwargs).unwrapped
         assert isinstance(env.action_base, FaceGait) and env.residual_scale == 0.25  # type: ignore[attr-defined]
+        assert isinstance(env.action_base, ActionBase)  # type: ignore[attr-defined]
         plain = _condition_env(policy.env_id, condition("oracle"), {}).unwrapped
         assert plain.action_base is None  # type: ignore[attr-defined]
     finally:

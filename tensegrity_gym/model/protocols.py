@@ -184,6 +184,7 @@ class ActionBase(Protocol):
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]: ...
 
 
+@runtime_checkable
 class Task(Protocol):
     """What the robot is asked to do: the observation, the reward and the end of an
     episode, all computed from the estimator's :class:`Estimate` (never ground truth).
