@@ -116,9 +116,11 @@ def _demo(args: argparse.Namespace) -> int:
     report = run_main_job(Path(args.out), seed=args.seed, **budget)
     sys.stdout.write(f"report: {Path(args.out) / 'report' / 'report.md'}\n")
     for name, check in report["checks"].items():
+        gait = check.get("progress_vs_gait")
         sys.stdout.write(
-            f"  {name}: {check['progress_vs_random']}x a random policy's progress, "
-            f"{check['rolls_per_episode']} rolls per episode (under {check['condition']})\n"
+            f"  {name}: {check['progress_vs_random']}x a random policy's progress"
+            + (f", {gait:.0%} of the scripted gait's" if gait is not None else "")
+            + f", {check['rolls_per_episode']} rolls per episode (under {check['condition']})\n"
         )
     sys.stdout.write(f"  wall time per stage (s): {report['timing_s']}\n")
     return 0
