@@ -94,13 +94,14 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from agents.main_job import run_main_job, run_main_job_seeds
+    from agents.main_job import RESIDUAL_GAIT, run_main_job, run_main_job_seeds
 
     budget = {
         "ukf_timesteps": args.timesteps,
         "oracle_timesteps": args.oracle_timesteps,
         "episodes": args.episodes,
         "progress_bar": not args.no_progress,
+        "residual_gait": None if args.absolute_actions else RESIDUAL_GAIT,
     }
     if args.seeds:
         summary = run_main_job_seeds(Path(args.out), args.seeds, **budget)
@@ -420,6 +421,11 @@ def _add_training(sub: Any, env_help: str) -> None:
         help="run the demo once per seed (into OUT/seed_<s>) and report mean ± spread "
         "across them in OUT/seeds.md",
     )
+    demo.add_argument(
+        "--absolute-actions", action="store_true",
+        help="the policies command rest-length targets themselves, not corrections of the "
+        "scripted gait (gym.make's residual_gait)",
+    )  # fmt: skip
     demo.add_argument("--out", default="demo_out", help="folder for the runs and the report")
     demo.add_argument("--no-progress", action="store_true", help="no progress bars")
     demo.set_defaults(func=_demo)

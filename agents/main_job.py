@@ -23,6 +23,11 @@ __all__ = ["across_seeds", "run_main_job", "run_main_job_seeds"]
 log = logging.getLogger(__name__)
 
 ENV_ID = "tensegrity_gym/ThreeBarRoll-v0"
+RESIDUAL_GAIT = 0.5
+"""The demo's policies correct the scripted gait at this scale: over seeds 0-2 (PPO,
+120,000 steps on UKF estimates, 5 episodes each) they made 0.37 ± 0.005 m toward the
+goal in 30 s with at least 2 rolls an episode on every seed; absolute targets made
+0.37 ± 0.12 m, one seed with 0.8 rolls."""
 
 
 def run_main_job(
@@ -33,9 +38,12 @@ def run_main_job(
     episodes: int = 5,
     seed: int = 0,
     progress_bar: bool = True,
+    residual_gait: float | None = RESIDUAL_GAIT,
 ) -> dict[str, Any]:
     """Train (UKF, then oracle; ``oracle_timesteps=0`` skips it), evaluate, report.
-    Returns the report, with the wall time of each stage under ``"timing_s"``."""
+    Both policies act by correcting the scripted gait (``gym.make``'s
+    ``residual_gait``; None: absolute rest-length targets). Returns the report, with the
+    wall time of each stage under ``"timing_s"``."""
     timing: dict[str, float] = {}
     runs = []
     for estimator, steps in (("ukf", ukf_timesteps), ("oracle", oracle_timesteps)):
@@ -51,6 +59,7 @@ def run_main_job(
             timesteps=steps,
             seed=seed,
             progress_bar=progress_bar,
+            env_kwargs={"residual_gait": residual_gait} if residual_gait is not None else None,
         )
         timing[f"train_{estimator}"] = round(time.perf_counter() - start, 1)
         runs.append(out / f"ppo_{estimator}")
