@@ -443,12 +443,14 @@ def _deepest_touch(
     b1: int,
     pair_params: NDArray[np.float64],
     pair: int,
+    axes: tuple[float, float, float],
 ) -> tuple[float, float, float]:
     """(depth (m), s, t) of the deepest overlap of rods (a0, a1) and (b0, b1), each a tube
-    between two endcap spheres: tube on tube, an endcap of rod a on rod b's tube and
+    between two endcap spheres: tube on tube (their axes' closest points ``axes``, as
+    :func:`_segments_closest` gives them), an endcap of rod a on rod b's tube and
     endcaps, then an endcap of rod b on rod a's tube, at the distances of row ``pair`` of
     :attr:`KernelArrays.pair_params`. The first of equal depths wins."""
-    s, t, dist = _segments_closest(x, a0, a1, b0, b1)
+    s, t, dist = axes
     best, bs, bt = pair_params[pair, _TUBES] - dist, s, t
     for end in (0.0, 1.0):
         t = _on_segment(x, a0, a1, end, b0, b1)
@@ -480,6 +482,7 @@ def _rod_contact(
     b1: int,
     pair_params: NDArray[np.float64],
     pair: int,
+    axes: tuple[float, float, float],
     k: float,
     c: float,
     smooth: float,
@@ -489,7 +492,7 @@ def _rod_contact(
     The deepest overlap's two points split the contact force between each rod's two
     nodes like a lever.
     """
-    depth, s, t = _deepest_touch(x, a0, a1, b0, b1, pair_params, pair)
+    depth, s, t = _deepest_touch(x, a0, a1, b0, b1, pair_params, pair, axes)
     gx, gy, gz, dist = _gap(x, a0, a1, b0, b1, s, t)
     if dist < 1e-9 or depth <= -smooth:
         return
@@ -641,10 +644,11 @@ def _propagate(
                 if cx * cx + cy * cy + cz * cz > pair_params[k, _BOUND]:
                     continue
                 # The axes' distance bounds every other: rods this far apart cannot touch.
-                if _segments_closest(x, a0, a1, b0, b1)[2] >= pair_params[k, _CAPS] + smooth:
+                axes = _segments_closest(x, a0, a1, b0, b1)
+                if axes[2] >= pair_params[k, _CAPS] + smooth:
                     continue
                 _rod_contact(
                     x, v, force, a0, a1, b0, b1,
-                    pair_params, k, contact_k, contact_c, smooth,
+                    pair_params, k, axes, contact_k, contact_c, smooth,
                 )  # fmt: skip
             _advance_nodes(x, v, force, nodes, constants, h)
