@@ -375,3 +375,25 @@ def test_bench_reports_every_step() -> None:
     assert out["state_dim"] == 24.0
     for step in ("propagate", "correct", "augment", "marginalise"):
         assert 0.0 < out[f"{step}_us"] <= out[f"{step}_mean_us"] * 20
+
+
+def test_a_contact_moves_by_its_shift_alone_and_velocity_variance_adds() -> None:
+    rng = np.random.default_rng(4)
+    f = _filter()
+    f.reset(so3_exp(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3),
+            np.zeros(3), np.zeros(3), P0)  # fmt: skip
+    for node, foot in zip((3, 1), FEET[:2], strict=True):
+        f.augment(node, foot, KIN)
+    X, P = f.state_matrix, f.covariance
+    f.move_contact(1, [0.05, -0.02, 0.0])
+    moved = X.copy()
+    moved[:3, 6] += [0.05, -0.02, 0.0]
+    np.testing.assert_array_equal(f.state_matrix, moved)
+    np.testing.assert_array_equal(f.covariance, P)  # a known motion, not a measurement
+    f.add_velocity_variance(0.25)
+    np.testing.assert_array_equal(np.diag(f.covariance)[3:6], np.diag(P)[3:6] + 0.25)
+    np.testing.assert_array_equal(np.delete(f.covariance, [3, 4, 5], 0), np.delete(P, [3, 4, 5], 0))
+    with pytest.raises(ValueError, match="node 4 is not in contact"):
+        f.move_contact(4, np.zeros(3))
+    with pytest.raises(ValueError, match="variance must be a finite number >= 0"):
+        f.add_velocity_variance(float("nan"))

@@ -690,6 +690,19 @@ class RightInvariantEkf:
         self._T, self._P = _marginalise(self._T, self._P, k)
         del self._nodes[k]
 
+    def move_contact(self, node: int, shift: ArrayLike) -> None:
+        """Move node's contact point by ``shift`` (3,) m, world frame: a known motion of
+        the endcap on the ground (its sphere rolling), not a measurement, so P is kept."""
+        self._T[:, 5 + self._slot(node)] += _vector(shift, "shift")
+
+    def add_velocity_variance(self, variance: float) -> None:
+        """Add ``variance`` (m/s)^2 per axis to the velocity's error: a step whose
+        acceleration the IMU did not measure (a reading clipped at its full scale)."""
+        if not (variance >= 0.0 and math.isfinite(variance)):
+            raise ValueError(f"variance must be a finite number >= 0, got {variance!r}")
+        for i in range(3, 6):
+            self._P[i, i] += variance
+
     def correct(
         self,
         nodes: Sequence[int],
