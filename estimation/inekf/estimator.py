@@ -61,6 +61,8 @@ if TYPE_CHECKING:
 __all__ = ["InekfEstimator"]
 
 _UP = np.array([0.0, 0.0, 1.0])
+_USED = (ImuSample, AhrsSample, EncoderSample, CableLengthSample, ContactSample)
+"""The kinds of samples the estimator reads; the others (UWB, camera) are not screened."""
 CLIPPED = 0.999
 """An accelerometer axis reading at least this share of its full scale has clipped."""
 SLIP_SLOPE = 0.5
@@ -134,6 +136,11 @@ class InekfEstimator:
         self._clip = CLIPPED * self._full_scale
         self._base_nodes = frozenset(int(n) for n in d.rod_nodes[c.base_rod])
         self._base_endcap_radius = float(d.rods[c.base_rod].endcap_radius)
+        self._cov_touch = np.eye(3) * c.contact_std**2
+        # (k, 3, 3) forward-kinematics covariances for k contacts, made once
+        self._cov_kinematics = [np.repeat(np.eye(3)[None] * c.kinematics_std**2, k, axis=0)
+                                for k in range(d.n_nodes + 1)]  # fmt: skip
+        self._clipped = False
         self._rest = np.asarray(command, dtype=np.float64).copy()
         self._cables: NDArray[np.float64] | None = None
         self._sensed: NDArray[np.bool_] | None = None
@@ -148,14 +155,16 @@ class InekfEstimator:
         # 1 us short of the period, so that readings at exactly the rate are all due
         self._shape_period_ns = seconds_to_ns(1.0 / c.shape_rate) - 1000
         self._rest_sum, self._rest_n, self._resting = np.zeros(3), 0, True
-        self._start(self.screen.screen(self.screen.timely(samples)))
+        used = [s for s in samples if type(s) in _USED]
+        self._start(self.screen.screen(self.screen.timely(used)))
         return self._estimate(0, corrected=True)
 
     def update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
         if self.filter is None:
             raise RuntimeError("call reset() before update()")
         before = self._t_ns
-        corrected = self._consume(self.screen.screen(self.screen.timely(samples)))
+        used = [s for s in samples if type(s) in _USED]
+        corrected = self._consume(self.screen.screen(self.screen.timely(used)))
         self._check_divergence()
         return self._estimate(self._t_ns - before, corrected=corrected)
 
@@ -260,16 +269,17 @@ class InekfEstimator:
         if self._imu_ns is not None and t_ns > self._imu_ns:
             dt = ns_to_seconds(t_ns - self._imu_ns)
             f.propagate(self._gyro, self._accel, dt)
-            if np.any(np.abs(self._accel) >= self._clip):
+            if self._clipped:
                 # The reading stopped at the full scale: the velocity change it missed
                 # is unknown, of the order of the full scale over the step.
                 f.add_velocity_variance((self._full_scale * dt) ** 2)
-            if self.config.rolling_endcaps:
+            if self.config.rolling_endcaps and not self._base_nodes.isdisjoint(f.contact_nodes):
                 self._roll_base_endcaps(dt)
         if self._imu_ns is None or t_ns >= self._imu_ns:
             self._imu_ns = t_ns
             self._gyro = np.asarray(s.gyro, dtype=np.float64)
             self._accel = np.asarray(s.accel, dtype=np.float64)
+            self._clipped = bool(np.abs(self._accel).max() >= self._clip)
             self._t_ns = max(self._t_ns, t_ns)
             self._rest_phase(self._gyro)
 
@@ -362,17 +372,18 @@ class InekfEstimator:
         now = self._contacts()
         for node in [n for n in f.contact_nodes if not now[n]]:
             f.marginalise(node)
-        cov_touch = np.eye(3) * c.contact_std**2
-        for touched in np.flatnonzero(now & ~self.in_contact).tolist():
-            if touched not in f.contact_nodes:
-                f.augment(touched, self.shape[touched], cov_touch)
+        cov_touch = self._cov_touch
+        if not np.array_equal(now, self.in_contact):
+            for touched in np.flatnonzero(now & ~self.in_contact).tolist():
+                if touched not in f.contact_nodes:
+                    f.augment(touched, self.shape[touched], cov_touch)
         self.in_contact = now
         nodes = list(f.contact_nodes)
         if not nodes:
             return False
-        cov = np.broadcast_to(np.eye(3) * c.kinematics_std**2, (len(nodes), 3, 3))
-        result = f.correct(nodes, self.shape[nodes], np.ascontiguousarray(cov), gate=self._gate)
-        refused = [n for n, ok in zip(nodes, result.accepted, strict=True) if not ok]
+        cov = self._cov_kinematics[len(nodes)]
+        result = f.correct(nodes, self.shape[nodes], cov, gate=self._gate)
+        refused = [n for n, ok in zip(nodes, result.accepted.tolist(), strict=True) if not ok]
         if refused:
             self._rejected["contact_gated"] = self._rejected.get("contact_gated", 0) + len(refused)
         if c.reanchor_slipped and len(refused) < len(nodes):
@@ -384,7 +395,7 @@ class InekfEstimator:
             for node in self._slipped(refused):
                 f.marginalise(node)
                 f.augment(node, self.shape[node], cov_touch)
-        accepted = bool(np.any(result.accepted))
+        accepted = len(refused) < len(nodes)
         if accepted:
             self._refused_since_ns = None
         elif self._refused_since_ns is None:
