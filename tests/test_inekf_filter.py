@@ -397,3 +397,23 @@ def test_a_contact_moves_by_its_shift_alone_and_velocity_variance_adds() -> None
         f.move_contact(4, np.zeros(3))
     with pytest.raises(ValueError, match="variance must be a finite number >= 0"):
         f.add_velocity_variance(float("nan"))
+
+
+def test_the_contacts_slip_density_can_change_between_propagations() -> None:
+    # Two filters alike but for the slip density: only the contacts' own variance grows
+    # by the difference of the densities' squares times dt.
+    rng = np.random.default_rng(6)
+    pair = [_filter(), _filter()]
+    R, v, p = so3_exp(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3)
+    for f in pair:
+        f.reset(R, v, p, np.zeros(3), np.zeros(3), P0)
+        f.augment(2, FEET[0], KIN)
+    pair[1].set_contact_velocity_noise(0.3)
+    for f in pair:
+        f.propagate([0.1, -0.2, 0.3], -G, 0.01)
+    grown = pair[1].covariance - pair[0].covariance
+    expected = np.zeros_like(grown)
+    expected[9:12, 9:12] = np.eye(3) * (0.3**2 - InekfNoise().contact_velocity ** 2) * 0.01
+    np.testing.assert_allclose(grown, expected, atol=1e-15)
+    with pytest.raises(ValueError, match="density must be a finite number >= 0"):
+        pair[0].set_contact_velocity_noise(-1.0)

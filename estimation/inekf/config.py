@@ -19,13 +19,12 @@ __all__ = ["CONTACT_SOURCES", "InekfConfig", "noise_from_description"]
 BIAS_WALK = 1e-5
 """Random-walk density of both IMU biases (per sqrt(Hz)): a bias that changes slowly over
 a run (the simulator's is constant), so that the filter keeps learning it."""
-CONTACT_SLIP = 0.02
-"""m/s/sqrt(Hz): an endcap's slip in contact. Papers/002 table I has 0.05. On the
-1.45 m robot's five runs (agents.bench_proprio, seeds 0 and 1; taut cables, one IMU,
-shapes at 20 Hz) the mean drift was 12.5 % with 0.015, 12.2 % with 0.02, 12.3 % with
-0.03, 12.8 % with 0.01 and 14.7 % with 0.05: the simulated endcaps slide about 1 cm per
-0.1 s in contact (on the left turn they carry the robot), and a looser contact lets the
-IMU see some of it, while a much looser one lets the pose wander through the rolls."""
+CONTACT_SLIP = 0.005
+"""m/s/sqrt(Hz): an endcap's slip in contact while the robot is still; papers/002 table I
+has 0.05. It grows with the angular rate (:attr:`InekfConfig.slip_per_rate`). On the
+1.45 m robot's five runs (agents.bench_proprio, seeds 0-2, one-off replays) a constant
+density drifted 9.5 % on average (0.02; 0.01-0.05 were no better, with capsule rods),
+a density growing with the rate 6.9 % (0.005 + 0.05 per rad/s; 0.002 6.8 %, 0.01 7.2 %)."""
 
 
 def noise_from_description(description: RobotDescription) -> InekfNoise:
@@ -82,6 +81,13 @@ class InekfConfig:
     the filter trust a wrong shape and drift 10 % instead of 4 % on the forward gait."""
     gate_probability: float = 0.9999
     """Chi-square gate on each contact correction: innovations less likely are refused."""
+    slip_per_rate: float = 0.05
+    """m/s/sqrt(Hz) per rad/s: the contacts' slip density grows by this times the base
+    rod's angular rate. The endcaps slide most while the robot tips over a face (1 kHz
+    truth: a third of the contact time faster than 5 cm/s), and barely while it rests
+    on one; a constant density either trusts the sliding contacts or loosens the still
+    ones. On the bench (seeds 0-2): 9.5 % -> 6.9 % mean drift; 0.04 7.1 %, 0.07 7.0 %,
+    and no growth below 1 rad/s 8.8 % (the left turn rocks slowly and slides)."""
     reanchor_slipped: bool = True
     """A contact the gate refuses has slipped: it touches down again where the shape and
     the pose put it. On the bench (agents.bench_proprio, seeds 0 and 1) the mean drift
@@ -129,6 +135,9 @@ class InekfConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ValueError(f"InekfConfig.{name} must be a number > 0, got {value!r}")
+        k = self.slip_per_rate
+        if not (isinstance(k, (int, float)) and math.isfinite(k) and k >= 0):
+            raise ValueError(f"InekfConfig.slip_per_rate must be a number >= 0, got {k!r}")
         for name in ("reanchor_slipped", "rolling_endcaps"):
             flag = getattr(self, name)
             if not isinstance(flag, bool):

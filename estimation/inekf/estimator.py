@@ -18,6 +18,7 @@ reset: both drift.
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -198,6 +199,7 @@ class InekfEstimator:
         self._shape_ns = self._t_ns
         p = initial_position(d, R, self.shape)
         noise = c.noise if c.noise is not None else noise_from_description(d)
+        self._slip = noise.contact_velocity
         self.filter = RightInvariantEkf(noise, gravity=np.array([0.0, 0.0, -d.gravity]))
         self.filter.reset(R, np.zeros(3), p, bias_g, np.zeros(3), self._initial_covariance(R))
         if len(gyro):
@@ -268,6 +270,10 @@ class InekfEstimator:
         assert f is not None
         if self._imu_ns is not None and t_ns > self._imu_ns:
             dt = ns_to_seconds(t_ns - self._imu_ns)
+            if self.config.slip_per_rate > 0.0:  # the endcaps slide as the robot tips over
+                wx, wy, wz = (self._gyro - f.gyro_bias).tolist()
+                rate = math.sqrt(wx * wx + wy * wy + wz * wz)
+                f.set_contact_velocity_noise(self._slip + self.config.slip_per_rate * rate)
             f.propagate(self._gyro, self._accel, dt)
             if self._clipped:
                 # The reading stopped at the full scale: the velocity change it missed

@@ -695,6 +695,14 @@ class RightInvariantEkf:
         the endcap on the ground (its sphere rolling), not a measurement, so P is kept."""
         self._T[:, 5 + self._slot(node)] += _vector(shift, "shift")
 
+    def set_contact_velocity_noise(self, density: float) -> None:
+        """Set the contacts' slip density (m/s/sqrt(Hz), ``InekfNoise.contact_velocity``)
+        for the propagations from now on: an estimator that knows when the endcaps slide
+        more (the robot tipping over) says so."""
+        if not (density >= 0.0 and math.isfinite(density)):
+            raise ValueError(f"density must be a finite number >= 0, got {density!r}")
+        self._q[2] = density * density
+
     def add_velocity_variance(self, variance: float) -> None:
         """Add ``variance`` (m/s)^2 per axis to the velocity's error: a step whose
         acceleration the IMU did not measure (a reading clipped at its full scale)."""
