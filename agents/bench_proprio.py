@@ -213,16 +213,23 @@ class _Tap:
 
 
 def bench_proprioceptive(
-    steps: int = 300, seed: int = 0, runs: dict[str, dict[str, Any]] | None = None
+    steps: int = 300,
+    seed: int = 0,
+    runs: dict[str, dict[str, Any]] | None = None,
+    seeds: Sequence[int] | None = None,
 ) -> dict[str, Any]:
-    """The table over ``runs`` (default :data:`RUNS`), and the InEKF's mean drift %."""
-    rows = [_run(name, kw, steps, seed) for name, kw in (runs or RUNS).items()]
+    """The table over ``runs`` (default :data:`RUNS`) from ``reset(seed)``, or from each
+    of ``seeds`` in turn (the rows of all, and the means over all); the InEKF's mean
+    drift %, the UKF's without UWB, and on how many rows the InEKF drifts less."""
+    chosen = [seed] if seeds is None else list(seeds)
+    rows = [_run(name, kw, steps, s) for s in chosen for name, kw in (runs or RUNS).items()]
 
     def mean(key: str) -> float:
         return round(float(np.mean([r[key]["drift_percent"] for r in rows])), 2)
 
     return {
         "env": ENV_ID,
+        "seeds": chosen,
         "runs": rows,
         "inekf_mean_drift_percent": mean("inekf"),
         "ukf_without_uwb_mean_drift_percent": mean("ukf_without_uwb"),

@@ -410,3 +410,14 @@ def test_a_contact_that_slides_along_the_ground_touches_down_again(
     point = dict(zip(f.contact_nodes, f.contact_positions, strict=True))[slid]
     kinematics = f.rotation @ est.shape[slid] + f.position
     assert bool(np.linalg.norm(point - kinematics) < 0.05) is reanchored
+
+
+def test_the_table_runs_over_several_seeds_and_averages_every_row() -> None:
+    from agents.bench_proprio import bench_proprioceptive
+
+    table = bench_proprioceptive(steps=15, runs={"forward": {}}, seeds=(0, 1))
+    assert table["seeds"] == [0, 1]
+    assert [(r["run"], r["seed"]) for r in table["runs"]] == [("forward", 0), ("forward", 1)]
+    drifts = [r["inekf"]["drift_percent"] for r in table["runs"]]
+    assert drifts[0] != drifts[1]  # two worlds, not one run twice
+    assert table["inekf_mean_drift_percent"] == pytest.approx(np.mean(drifts), abs=0.006)
