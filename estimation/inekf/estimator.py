@@ -266,21 +266,8 @@ class InekfEstimator:
 
     def _imu(self, s: ImuSample, t_ns: int) -> None:
         """Propagate over the time since the last reading with that reading held."""
-        f = self.filter
-        assert f is not None
         if self._imu_ns is not None and t_ns > self._imu_ns:
-            dt = ns_to_seconds(t_ns - self._imu_ns)
-            if self.config.slip_per_rate > 0.0:  # the endcaps slide as the robot tips over
-                wx, wy, wz = (self._gyro - f.gyro_bias).tolist()
-                rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-                f.set_contact_velocity_noise(self._slip + self.config.slip_per_rate * rate)
-            f.propagate(self._gyro, self._accel, dt)
-            if self._clipped:
-                # The reading stopped at the full scale: the velocity change it missed
-                # is unknown, of the order of the full scale over the step.
-                f.add_velocity_variance((self._full_scale * dt) ** 2)
-            if self.config.rolling_endcaps and not self._base_nodes.isdisjoint(f.contact_nodes):
-                self._roll_base_endcaps(dt)
+            self._propagate(ns_to_seconds(t_ns - self._imu_ns))
         if self._imu_ns is None or t_ns >= self._imu_ns:
             self._imu_ns = t_ns
             self._gyro = np.asarray(s.gyro, dtype=np.float64)
@@ -288,6 +275,24 @@ class InekfEstimator:
             self._clipped = bool(np.abs(self._accel).max() >= self._clip)
             self._t_ns = max(self._t_ns, t_ns)
             self._rest_phase(self._gyro)
+
+    def _propagate(self, dt: float) -> None:
+        """Propagate over ``dt`` s with the held reading: the contacts' slip density by
+        the angular rate, the velocity made uncertain where the reading clipped, the
+        base rod's endcaps in contact rolled."""
+        f, c = self.filter, self.config
+        assert f is not None
+        if c.slip_per_rate > 0.0:  # the endcaps slide as the robot tips over
+            wx, wy, wz = (self._gyro - f.gyro_bias).tolist()
+            rate = math.sqrt(wx * wx + wy * wy + wz * wz)
+            f.set_contact_velocity_noise(self._slip + c.slip_per_rate * rate)
+        f.propagate(self._gyro, self._accel, dt)
+        if self._clipped:
+            # The reading stopped at the full scale: the velocity change it missed is
+            # unknown, of the order of the full scale over the step.
+            f.add_velocity_variance((self._full_scale * dt) ** 2)
+        if c.rolling_endcaps and not self._base_nodes.isdisjoint(f.contact_nodes):
+            self._roll_base_endcaps(dt)
 
     def _roll_base_endcaps(self, dt: float) -> None:
         """Roll the base rod's endcaps in contact by its spin over ``dt`` s: a sphere of
