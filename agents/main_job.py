@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -16,7 +17,6 @@ from agents.train import train
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
-    from pathlib import Path
 
 __all__ = ["across_seeds", "run_main_job", "run_main_job_seeds"]
 
@@ -67,8 +67,61 @@ def run_main_job(
     report = write_report(runs, out / "report", episodes=episodes, conditions=("oracle", "ukf"))
     timing["evaluate_and_report"] = round(time.perf_counter() - start, 1)
     report["timing_s"] = timing
+    settings = {
+        "ukf_timesteps": ukf_timesteps,
+        "oracle_timesteps": oracle_timesteps,
+        "episodes": episodes,
+        "residual_gait": residual_gait,
+    }
+    lines = against_reference(report, settings, load_reference())
+    report["settings"] = settings
+    report["against_seeds"] = lines
+    with (out / "report" / "report.md").open("a") as md:
+        md.write("\n## Against the multi-seed run\n\n" + "\n".join(lines) + "\n")
     (out / "report" / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
+
+
+REFERENCE = Path(__file__).parent / "configs" / "demo_seeds.json"
+"""The multi-seed run the README quotes (``demo --seeds 0 1 2``'s ``seeds.json`` with the
+settings it ran with): what a one-seed demo states its result against."""
+
+
+def load_reference(path: Path = REFERENCE) -> dict[str, Any] | None:
+    """The stored multi-seed figures, None where there are none."""
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def against_reference(
+    report: dict[str, Any], settings: dict[str, Any], reference: dict[str, Any] | None
+) -> list[str]:
+    """Markdown lines setting each trained policy's progress and rolls under the UKF
+    beside the multi-seed run's mean ± std [least, greatest], where it ran with these
+    ``settings``."""
+    if reference is None:
+        return ["No multi-seed run is stored (`agents/configs/demo_seeds.json`)."]
+    if reference.get("settings") != settings:
+        return [
+            f"The multi-seed run used other settings ({reference.get('settings')}), "
+            f"so this run ({settings}) is not compared with it."
+        ]
+    command = reference.get("command", "tensegrity-gym demo --seeds ...")
+    lines = [f"The multi-seed run (seeds {reference['seeds']}, `{command}`):", ""]
+    for policy, by_condition in reference["results"].items():
+        mine = report["results"].get(policy, {}).get("ukf")
+        ref = by_condition.get("ukf")
+        if mine is None or ref is None or not policy.startswith("trained"):
+            continue
+        parts = []
+        for key, label in (("progress_mean_m", "progress (m)"), ("rolls_per_episode", "rolls")):
+            f, x = ref[key], mine[key]
+            within = "within" if f["min"] <= x <= f["max"] else "outside"
+            parts.append(
+                f"{label} {x:.2f} against {f['mean']:.2f} ± {f['std']:.2f} "
+                f"[{f['min']:.2f}, {f['max']:.2f}] ({within} the seeds' range)"
+            )
+        lines.append(f"- **{policy}** under `ukf`: " + "; ".join(parts) + ".")
+    return lines
 
 
 SEED_FIGURES = ("progress_mean_m", "rolls_per_episode", "success_rate", "com_error_mean_m")
@@ -105,6 +158,7 @@ def run_main_job_seeds(out: Path, seeds: Sequence[int], **kwargs: Any) -> dict[s
         raise ValueError(f"demo --seeds: give distinct seeds, got {list(seeds)}")
     reports = {s: run_main_job(out / f"seed_{s}", seed=s, **kwargs) for s in seeds}
     summary = across_seeds(reports)
+    summary["settings"] = reports[seeds[0]]["settings"]
     summary["timing_s"] = {s: r["timing_s"] for s, r in reports.items()}
     out.mkdir(parents=True, exist_ok=True)
     (out / "seeds.json").write_text(json.dumps(summary, indent=2) + "\n")

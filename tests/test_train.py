@@ -15,7 +15,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import tensegrity_gym  # noqa: F401
 from agents.evaluate import CONDITIONS, count_rolls, evaluate_policy, load_policy
-from agents.main_job import across_seeds, run_main_job_seeds
+from agents.main_job import across_seeds, against_reference, run_main_job_seeds
 from agents.report import write_report
 from agents.train import load_hyperparams, parse_config_value, train
 
@@ -293,6 +293,39 @@ def test_figures_across_seeds_give_mean_spread_and_each_seed() -> None:
     assert rolls["mean"] == 2.0 and rolls["per_seed"] == [3.0, 1.0]
     with pytest.raises(ValueError, match="distinct seeds"):
         run_main_job_seeds(Path("unused"), [1, 1])
+
+
+def test_one_seed_states_its_result_against_the_multi_seed_run() -> None:
+    def row(progress: float, rolls: float) -> dict[str, Any]:
+        return {"progress_mean_m": progress, "rolls_per_episode": rolls}
+
+    def spread(mean: float, lo: float, hi: float) -> dict[str, float]:
+        return {"mean": mean, "std": 0.01, "min": lo, "max": hi}
+
+    settings = {"ukf_timesteps": 10, "oracle_timesteps": 0, "episodes": 1, "residual_gait": 0.5}
+    reference = {
+        "seeds": [0, 1, 2],
+        "settings": settings,
+        "results": {
+            "trained on ukf": {
+                "ukf": {
+                    "progress_mean_m": spread(0.37, 0.36, 0.38),
+                    "rolls_per_episode": spread(3.0, 2.2, 4.4),
+                }
+            },
+            "random policy": {"ukf": {}},
+        },
+    }
+    report = {"results": {"trained on ukf": {"ukf": row(0.30, 2.5)}}}
+    lines = against_reference(report, settings, reference)
+    assert lines[-1] == (
+        "- **trained on ukf** under `ukf`: progress (m) 0.30 against 0.37 ± 0.01 "
+        "[0.36, 0.38] (outside the seeds' range); rolls 2.50 against 3.00 ± 0.01 "
+        "[2.20, 4.40] (within the seeds' range)."
+    )
+    other = against_reference(report, {**settings, "residual_gait": None}, reference)
+    assert "not compared" in other[0]
+    assert "No multi-seed run" in against_reference(report, settings, None)[0]
 
 
 @pytest.mark.slow
