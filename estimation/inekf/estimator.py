@@ -397,7 +397,7 @@ class InekfEstimator:
         refused = [n for n, ok in zip(nodes, result.accepted.tolist(), strict=True) if not ok]
         if refused:
             self._rejected["contact_gated"] = self._rejected.get("contact_gated", 0) + len(refused)
-        if c.reanchor_slipped and len(refused) < len(nodes):
+        if c.reanchor_slipped and refused and len(refused) < len(nodes):
             # An endcap the gate refuses while others agree, off along the ground, has
             # slid from where it touched down: it is a new contact where the kinematics
             # now put it (held, it refused every correction until it lifted off). All
@@ -478,7 +478,9 @@ class InekfEstimator:
         R, p = f.rotation, f.position
         nodes = self.shape @ R.T + p
         omega = self._gyro - f.gyro_bias
-        velocities = f.velocity + np.cross(omega, self.shape) @ R.T
+        wx, wy, wz = omega.tolist()  # omega x node, written out (np.cross is 5x slower)
+        cross = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+        velocities = f.velocity + (self.shape @ cross.T) @ R.T
         self._last_position = p.copy()
         self.health.predicted(duration_ns, corrected=corrected)
         estimate = Estimate(
