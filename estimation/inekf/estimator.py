@@ -62,8 +62,10 @@ if TYPE_CHECKING:
 __all__ = ["InekfEstimator"]
 
 _UP = np.array([0.0, 0.0, 1.0])
-_USED = (ImuSample, AhrsSample, EncoderSample, CableLengthSample, ContactSample)
-"""The kinds of samples the estimator reads; the others (UWB, camera) are not screened."""
+_USED = (ImuSample, EncoderSample, CableLengthSample, ContactSample)
+"""The kinds of samples the estimator reads after reset; the others (UWB, camera, the
+AHRS's orientation, which only the start reads) are not screened."""
+_USED_AT_START = (*_USED, AhrsSample)
 CLIPPED = 0.999
 """An accelerometer axis reading at least this share of its full scale has clipped."""
 SLIP_SLOPE = 0.5
@@ -156,7 +158,7 @@ class InekfEstimator:
         # 1 us short of the period, so that readings at exactly the rate are all due
         self._shape_period_ns = seconds_to_ns(1.0 / c.shape_rate) - 1000
         self._rest_sum, self._rest_n, self._resting = np.zeros(3), 0, True
-        used = [s for s in samples if type(s) in _USED]
+        used = [s for s in samples if type(s) in _USED_AT_START]
         self._start(self.screen.screen(self.screen.timely(used)))
         return self._estimate(0, corrected=True)
 
