@@ -313,6 +313,7 @@ def _identify(args: argparse.Namespace) -> int:
         args.bag, Path(args.out), params=[p for p in args.params.split(",") if p],
         robot=args.robot, model=args.model, segment_seconds=args.segment_seconds,
         max_evaluations=args.max_evaluations, workers=args.workers, seed=args.seed,
+        imu_windows=args.imu_windows,
     )  # fmt: skip
     sys.stdout.write(result + "\n")
     return 0
@@ -627,6 +628,12 @@ def _add_identify(sub: Any) -> None:
     ide.add_argument("--workers", type=_positive_int, default=None,
                      help="processes (default: one per core)")  # fmt: skip
     ide.add_argument("--seed", type=int, default=0, help="seeds CMA-ES")
+    ide.add_argument(
+        "--imu-windows", type=_count, default=300,
+        help="periods at most (spread over the bag) whose IMU readings the fit compares "
+        "with the replay's, each replayed from its recorded start; 0: fit the node "
+        "positions over the segments instead (damping then weakly determined)",
+    )  # fmt: skip
     ide.set_defaults(func=_identify)
 
 

@@ -33,6 +33,7 @@ def identify_command(
     max_evaluations: int = 400,
     workers: int | None = None,
     seed: int = 0,
+    imu_windows: int = 300,
 ) -> str:
     """Fit ``params`` of ``robot`` (default: the bag's description) to the bag; write the
     fitted robot to ``out`` and the report beside it; what came out, for a person."""
@@ -49,7 +50,7 @@ def identify_command(
     result = identify_run(
         run, params, description=start or run.description, model=model,
         segment_seconds=segment_seconds, max_evaluations=max_evaluations, workers=workers,
-        seed=seed,
+        seed=seed, imu_windows_most=imu_windows,
     )  # fmt: skip
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(dump_robot(result.description))
@@ -63,8 +64,38 @@ def identify_command(
         f"  open-loop CoM error over {segment_seconds:g} s segments: {1e3 * c['before']:.1f} mm "
         f"-> {1e3 * c['after']:.1f} mm (mean of {report['segments']})"
     )
+    lines += [f"  note: {note}" for note in report["notes"]]
     lines.append(f"  report: {folder / 'report.md'}")
     return "\n".join(lines)
+
+
+def fit_notes(result: Identification) -> list[str]:
+    """What the report should warn of: a damping fitted without the IMU's readings."""
+    if len(result.imu_before) or "damping" not in result.names:
+        return []
+    why = (
+        "the UKF's model has no IMU"
+        if result.model == "ukf"
+        else "the bag has no IMU readings (or none the replay could compare)"
+    )
+    return [
+        f"{why}: fitted to the node positions over {len(result.segments)} segments, "
+        "sampled at the control rate, which hardly show the cables' damping; the damping "
+        "factor is weakly determined"
+    ]
+
+
+def _imu_figures(result: Identification) -> dict[str, Any] | None:
+    """The IMU windows' scores before and after (mean squared error in units of the
+    sensors' noise), or None without them."""
+    if not len(result.imu_before):
+        return None
+    return {
+        "windows": len(result.imu_before),
+        "score_before": round(float(np.mean(result.imu_before)), 3),
+        "score_after": round(float(np.mean(result.imu_after)), 3),
+        "median_after": round(float(np.median(result.imu_after)), 3),
+    }
 
 
 def write_report(result: Identification, start: RobotDescription, folder: Path) -> dict[str, Any]:
@@ -94,6 +125,9 @@ def write_report(result: Identification, start: RobotDescription, folder: Path) 
             "before": round(float(result.nodes_before.mean()), 5),
             "after": round(float(result.nodes_after.mean()), 5),
         },
+        "fitted_to": "IMU readings" if len(result.imu_before) else "node positions",
+        "imu_windows": _imu_figures(result),
+        "notes": fit_notes(result),
     }
     (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     (folder / "report.md").write_text(_markdown(report))
@@ -102,12 +136,20 @@ def write_report(result: Identification, start: RobotDescription, folder: Path) 
 
 
 def _markdown(report: dict[str, Any]) -> str:
+    imu = report["imu_windows"]
+    fitted = (
+        f"the IMU's readings over {imu['windows']} one-period windows, each replayed from "
+        f"the recording's {report['trajectory']}"
+        if imu
+        else f"the recording's {report['trajectory']} over {report['segments']} segments"
+    )
     lines = [
         "# System identification",
         "",
-        f"The {report['model']} model fitted to the recording's {report['trajectory']} over "
-        f"{report['segments']} segments ({report['evaluations']} evaluations, "
-        f"{report['seconds']} s).",
+        f"The {report['model']} model fitted to {fitted} ({report['evaluations']} "
+        f"evaluations, {report['seconds']} s).",
+        "",
+        *[f"**Note:** {note}." for note in report["notes"]],
         "",
         "| parameter | before | after | factor |",
         "|---|---|---|---|",
@@ -123,6 +165,13 @@ def _markdown(report: dict[str, Any]) -> str:
     for k, (b, a) in enumerate(zip(c["per_segment_before"], c["per_segment_after"], strict=True)):
         lines.append(f"| {k} | {1e3 * b:.1f} | {1e3 * a:.1f} |")
     lines += ["", f"Mean: {1e3 * c['before']:.1f} mm before, {1e3 * c['after']:.1f} mm after.", ""]
+    if imu:
+        lines += [
+            f"IMU windows: mean squared difference from the recorded readings, in units of "
+            f"the sensors' noise, {imu['score_before']:.4g} before, {imu['score_after']:.4g} "
+            f"after (median {imu['median_after']:.4g}).",
+            "",
+        ]
     lines += ["![recorded and replayed CoM paths](paths.png)", ""]
     return "\n".join(lines)
 

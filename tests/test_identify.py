@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -13,15 +14,20 @@ from agents.identify import (
     apply_parameters,
     factor_names,
     identify_run,
+    imu_windows,
     recorded_trajectory,
+    replay_imu,
     replay_sim,
     segment_errors,
     segments_of,
 )
+from agents.identify_imu import imu_features, window_scores, without_imu
+from agents.identify_report import fit_notes
 from hardware.recording import MemorySink, RecordedRun, RecordingBackend
 from tensegrity_gym.envs.factory import make_env
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.description import load_robot as load
+from tensegrity_gym.model.lie import quat_from_rotvec, quat_rotate
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -112,7 +118,9 @@ def test_identify_writes_a_robot_the_env_loads(tmp_path: Path) -> None:
     fitted = load(out)
     assert fitted.n_cables == NOMINAL.n_cables and fitted.name == NOMINAL.name
     report = tmp_path / "fitted_identify"
-    assert (report / "report.md").read_text().count("| damping |") == 1
+    markdown = (report / "report.md").read_text()
+    assert markdown.count("| damping |") == 1 and "fitted to the IMU's readings over" in markdown
+    assert "**Note:**" not in markdown  # the bag has an IMU: damping is not weakly fitted
     assert (report / "paths.png").stat().st_size > 1000
     again = make_env(out, estimator="ukf", calibration="true")
     again.reset(seed=0)
@@ -127,3 +135,89 @@ def test_identify_refuses_a_bad_bag_in_one_line(
     assert len(errors) == 1 and "missing: no such bag" in errors[0]
     assert "\n" not in errors[0]
     assert not (tmp_path / "x.yaml").exists()
+
+
+def _imu_scores(d: RobotDescription, windows: list) -> np.ndarray:
+    readings = [w.imu for w in windows]
+    return window_scores(d, readings, replay_imu(d, windows, 0.1, 0.001))
+
+
+def test_the_imu_readings_of_the_true_robot_replay_to_the_noise(stiffer: RecordedRun) -> None:
+    """Replayed over one period from each recorded state, the true robot's IMUs read
+    what the recorded ones did to within the sensors' noise in most periods (a score
+    of 1 is the noise), the nominal robot's a hundred times further off; started
+    without the spin its gyro read, the replay is further off too."""
+    frames, _ = recorded_trajectory(stiffer)
+    windows = imu_windows(stiffer, frames, 0.001, most=50)
+    assert len(windows) == 50 and windows[0].imu is not None
+    assert windows[0].imu.features.shape == (20, 3, 3)
+    names = factor_names(["stiffness"], NOMINAL)
+    true = apply_parameters(NOMINAL, names, np.log(TRUE_STIFFNESS))
+    scores = _imu_scores(true, windows)
+    assert np.median(scores) < 3.0, scores
+    assert np.median(_imu_scores(NOMINAL, windows)) > 100 * np.median(scores)
+    still = [replace(w, spin=np.zeros_like(w.spin)) for w in windows]
+    assert np.any(np.abs(windows[5].spin) > 0.1)  # the rods spin as the robot rolls
+    assert np.mean(_imu_scores(true, still)) > 2 * np.mean(scores)
+
+
+def test_a_replay_does_not_depend_on_the_one_before(stiffer: RecordedRun) -> None:
+    """Each replay is started on its own contacts (PyBullet warm-starts its solver from
+    the last step): the windows in reverse order score as in order, where a world
+    teleported from the previous window's end read a hundred times the noise."""
+    frames, _ = recorded_trajectory(stiffer)
+    windows = imu_windows(stiffer, frames, 0.001, most=34)
+    names = factor_names(["stiffness"], NOMINAL)
+    true = apply_parameters(NOMINAL, names, np.log(TRUE_STIFFNESS))
+    forward = _imu_scores(true, windows)
+    backward = _imu_scores(true, windows[::-1])[::-1]
+    np.testing.assert_allclose(backward, forward, rtol=0.05, atol=0.2)
+
+
+def test_imu_features_ignore_the_spin_angle() -> None:
+    """What is compared of a reading does not depend on the rod's unknown spin angle
+    about its own axis (body z)."""
+    rng = np.random.default_rng(0)
+    accel, gyro = rng.normal(size=(2, 5, 3))
+    spin = quat_from_rotvec(np.array([0.0, 0.0, 1.1]))
+    turned = imu_features(quat_rotate(spin, accel), quat_rotate(spin, gyro))
+    np.testing.assert_allclose(turned, imu_features(accel, gyro), atol=1e-12)
+    assert not np.allclose(imu_features(accel[:, ::-1], gyro), imu_features(accel, gyro))
+
+
+def test_a_bag_without_imu_is_fitted_on_the_nodes_with_a_note(stiffer: RecordedRun) -> None:
+    bare = without_imu(stiffer)
+    frames, _ = recorded_trajectory(bare)
+    assert imu_windows(bare, frames, 0.001) == []
+    assert all(not s.spin.any() for s in segments_of(bare, frames, 2.0))
+    result = identify_run(bare, ["damping"], description=NOMINAL, max_evaluations=4,
+                          workers=1)  # fmt: skip
+    assert len(result.imu_before) == 0 and len(result.com_before) == 5
+    (note,) = fit_notes(result)
+    assert "no IMU readings" in note and "damping factor is weakly determined" in note
+    with_imu = identify_run(stiffer, ["damping"], description=NOMINAL, max_evaluations=4,
+                            workers=1, imu_windows_most=20)  # fmt: skip
+    assert len(with_imu.imu_before) == 20 and fit_notes(with_imu) == []
+
+
+def test_a_state_set_in_flight_steps_as_the_run_it_was_taken_from() -> None:
+    """The cables' damping after a teleport acts on the stretching rate the set
+    velocities give (not on none, for one step): a vibrating robot in the air, set
+    again in the state it had, steps as it did (a 5 mm/s kick otherwise)."""
+    from tensegrity_gym.sim.world import PhysicsWorld
+
+    world = PhysicsWorld(NOMINAL, 0.001)
+    world.set_node_positions(NOMINAL.initial_positions + np.array([0.0, 0.0, 1.0]))
+    rng = np.random.default_rng(0)
+    position, quaternion, _, _ = (np.asarray(a) for a in world.rod_states())
+    world.set_rod_states(position, quaternion, rng.normal(0, 0.3, (3, 3)),
+                         rng.normal(0, 3.0, (3, 3)))  # fmt: skip
+    hold = NOMINAL.rest_lengths[NOMINAL.actuated].tolist()
+    world.advance(20, hold, [False] * 20)
+    state = [np.asarray(a) for a in world.rod_states()]
+    before = world.advance(1, hold, [True])[0]
+    world.set_rod_states(*state)
+    again = world.advance(1, hold, [True])[0]
+    world.close()
+    kick = np.subtract(again.rod_linear_velocities, before.rod_linear_velocities)
+    assert np.abs(kick).max() < 5e-4

@@ -304,9 +304,16 @@ class PhysicsWorld:
         self._sync_cable_lengths()
 
     def _sync_cable_lengths(self) -> None:
-        """Reset the cable-length history of the damping term after a teleport."""
-        x, _ = self.node_states()
-        self._cable_lengths = member_lengths(x, self.description.cable_nodes).tolist()
+        """Reset the cable-length history of the damping term after a teleport: the
+        lengths one step ago that the set velocities imply, so that the first step's
+        damping force is that of the cables' stretching rate, not zero (a restart
+        from a vibrating robot's state would otherwise feel an undamped first step)."""
+        x, xd = self.node_states()
+        pairs = self.description.cable_nodes
+        lengths = member_lengths(x, pairs)
+        along = (x[pairs[:, 1]] - x[pairs[:, 0]]) / np.maximum(lengths, 1e-12)[:, None]
+        rate = np.sum(along * (xd[pairs[:, 1]] - xd[pairs[:, 0]]), axis=1)
+        self._cable_lengths = (lengths - self.time_step * rate).tolist()
 
     def set_rest_lengths(self, rest_lengths: Sequence[float] | NDArray[np.float64]) -> None:
         """Set all cables' rest lengths (m); actuated targets follow."""
