@@ -7,9 +7,10 @@ the chosen physical parameters of the description are fitted so that the simulat
 motion matches the recorded one (motion capture where the bag has it, else the UKF's
 estimates). Where the bag has IMU readings, the simulator is fitted to those, over one
 control period from each of many recorded states (:mod:`agents.identify_imu`): node
-positions at the control rate hardly show the cables' damping. The optimiser is CMA-ES (the ``cma`` package) over log-scales of the
-description's values; each generation's candidates are evaluated on the machine's
-cores, a worker per core, each holding its own model.
+positions at the control rate hardly show the cables' damping. The optimiser is CMA-ES
+(the ``cma`` package) over log-scales of the description's values; each generation's
+candidates are evaluated on the machine's cores, a worker per core, each holding its
+own model.
 
 Two models can be fitted: the simulator's (``"sim"``, PyBullet, the default), and the
 UKF's spring-mass net (``"ukf"``, its own simpler physics, driven by the encoders as
