@@ -355,11 +355,12 @@ def test_the_contacts_slip_more_while_the_robot_turns() -> None:
     c = est.config
     still = f.gyro_bias.copy()
     turning = still + np.array([1.2, 0.0, -1.6])  # 2 rad/s
-    for gyro, rate in ((still, 0.0), (turning, 2.0)):
+    spinning = still + np.array([0.0, 0.0, 20.0])  # past the cap
+    for gyro, rate in ((still, 0.0), (turning, 2.0), (spinning, 20.0)):
         est._gyro = gyro
         t = est._imu_ns + 5_000_000
         est._imu(ImuSample(t * 1e-9, 0, np.array([0.0, 0.0, 9.81]), gyro, np.zeros(3)), t)
-        density = est._slip + c.slip_per_rate * rate
+        density = min(est._slip + c.slip_per_rate * rate, c.slip_max)
         assert f._q[2] == pytest.approx(density**2, rel=1e-6)  # the rest phase moves the bias
     assert est._slip == noise_from_description(est.description).contact_velocity
 

@@ -287,7 +287,8 @@ class InekfEstimator:
         if c.slip_per_rate > 0.0:  # the endcaps slide as the robot tips over
             wx, wy, wz = (self._gyro - f.gyro_bias).tolist()
             rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-            f.set_contact_velocity_noise(self._slip + c.slip_per_rate * rate)
+            cap = max(c.slip_max, self._slip)
+            f.set_contact_velocity_noise(min(self._slip + c.slip_per_rate * rate, cap))
         f.propagate(self._gyro, self._accel, dt)
         if self._clipped:
             # The reading stopped at the full scale: the velocity change it missed is
