@@ -201,9 +201,25 @@ def _checks(
             "progress_target_met": ratio >= TARGET_PROGRESS_RATIO,
         }
         if gait is not None:
-            share = row["progress_mean_m"] / max(abs(gait["progress_mean_m"]), 1e-3)
-            checks[name]["progress_vs_gait"] = round(share, 2)
+            # A share of a gait that went backwards would read as a small one: none then.
+            g = gait["progress_mean_m"]
+            checks[name]["gait_progress_m"] = g
+            checks[name]["progress_vs_gait"] = (
+                round(row["progress_mean_m"] / g, 2) if g > 0 else None
+            )
     return checks
+
+
+def _gait_share(check: dict[str, Any]) -> str:
+    """The check's sentence end on the scripted gait's progress, where there is a gait."""
+    if "gait_progress_m" not in check:
+        return "."
+    if check["progress_vs_gait"] is None:
+        return (
+            f"; the scripted gait made no progress toward the goal "
+            f"({check['gait_progress_m']:.2f} m), so no share of it is given."
+        )
+    return f"; {check['progress_vs_gait']:.0%} of the scripted gait's progress."
 
 
 def _markdown(report: dict[str, Any], training_plot: bool) -> str:
@@ -240,12 +256,7 @@ def _markdown(report: dict[str, Any], training_plot: bool) -> str:
             f"progress of a random policy (target {TARGET_PROGRESS_RATIO:g}x: "
             f"{'met' if c['progress_target_met'] else 'NOT met'}), "
             f"{c['rolls_per_episode']} rolls per episode (target {TARGET_ROLLS:g}: "
-            f"{'met' if c['rolls_target_met'] else 'NOT met'})"
-            + (
-                f"; {c['progress_vs_gait']:.0%} of the scripted gait's progress."
-                if "progress_vs_gait" in c
-                else "."
-            )
+            f"{'met' if c['rolls_target_met'] else 'NOT met'})" + _gait_share(c)
         )
     lines.append("")
     lines += [

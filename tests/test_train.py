@@ -16,7 +16,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 import tensegrity_gym  # noqa: F401
 from agents.evaluate import CONDITIONS, count_rolls, evaluate_policy, load_policy
 from agents.main_job import across_seeds, against_reference, run_main_job_seeds
-from agents.report import write_report
+from agents.report import _gait_share, write_report
 from agents.train import load_hyperparams, parse_config_value, train
 
 THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
@@ -237,6 +237,9 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
     assert check["condition"] == "oracle" and "progress_vs_random" in check
     trained = report["results"]["trained on oracle"]["oracle"]["progress_mean_m"]
     assert check["progress_vs_gait"] == round(trained / gait["oracle"]["progress_mean_m"], 2)
+    assert _gait_share({**check, "gait_progress_m": -0.5, "progress_vs_gait": None}).startswith(
+        "; the scripted gait made no progress toward the goal (-0.50 m)"
+    )
     text = (tmp_path / "report" / "report.md").read_text()
     assert "of the scripted gait's progress" in text and "| scripted gait | oracle |" in text
     assert "| trained on oracle | ukf_4_anchors |" in text and "![CoM paths]" in text
