@@ -202,6 +202,7 @@ class InekfEstimator:
         p = initial_position(d, R, self.shape)
         noise = c.noise if c.noise is not None else noise_from_description(d)
         self._slip = noise.contact_velocity
+        self._slip_cap = max(c.slip_max, self._slip)
         self.filter = RightInvariantEkf(noise, gravity=np.array([0.0, 0.0, -d.gravity]))
         self.filter.reset(R, np.zeros(3), p, bias_g, np.zeros(3), self._initial_covariance(R))
         if len(gyro):
@@ -287,14 +288,13 @@ class InekfEstimator:
         if c.slip_per_rate > 0.0:  # the endcaps slide as the robot tips over
             wx, wy, wz = (self._gyro - f.gyro_bias).tolist()
             rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-            cap = max(c.slip_max, self._slip)
-            f.set_contact_velocity_noise(min(self._slip + c.slip_per_rate * rate, cap))
+            f.set_contact_velocity_noise(min(self._slip + c.slip_per_rate * rate, self._slip_cap))
         f.propagate(self._gyro, self._accel, dt)
         if self._clipped:
             # The reading stopped at the full scale: the velocity change it missed is
             # unknown, of the order of the full scale over the step.
             f.add_velocity_variance((self._full_scale * dt) ** 2)
-        if c.rolling_endcaps and not self._base_nodes.isdisjoint(f.contact_nodes):
+        if c.rolling_endcaps:
             self._roll_base_endcaps(dt)
 
     def _roll_base_endcaps(self, dt: float) -> None:
