@@ -220,3 +220,31 @@ def test_the_ukf_stays_consistent_on_a_rolling_robot_in_mild_worlds() -> None:
         assert low < nees < high, f"{world}: NEES per dof {nees} outside ({low}, {high})"
     assert figures["mild_over_nominal_com_rmse"] < 1.5
     assert figures["rows"]["strong"]["reinitialisations"] == 0
+
+
+def test_a_reset_rests_until_the_estimator_can_start() -> None:
+    # In strong worlds most UWB packets are lost: a reset whose first round reaches too
+    # few anchors rests on, sampling, as a robot's driver waits; the UKF starts placed.
+    from tensegrity_gym.sim.backend import READY_WAIT, SimBackend
+
+    d = load_robot("three_bar")
+    backend = SimBackend(d)
+    calls: list[int] = []
+
+    def ready(samples: Any) -> str | None:
+        calls.append(len(samples))
+        return "a stand-in lack" if len(calls) < 3 else None
+
+    first = backend.reset(np.random.default_rng(0)).samples
+    waited = backend.reset(np.random.default_rng(0), ready=ready).samples
+    assert calls[0] == len(first) and len(calls) == 3 and calls[2] > calls[1] > calls[0]
+    assert max(s.t for s in waited) == pytest.approx(2 * backend.control_period)
+    calls.clear()
+    backend.reset(np.random.default_rng(0), ready=lambda samples: calls.append(0) or "never")
+    assert len(calls) == round(READY_WAIT / backend.control_period)  # then it gives up
+    backend.close()
+    env = gym.make("tensegrity_gym/ThreeBarRoll-v0", estimator="ukf", randomization="strong")
+    for seed in (1017, 1026):  # their first rounds reach 2 and 3 anchors
+        obs, info = env.reset(seed=seed)
+        assert np.all(np.isfinite(obs)) and info["estimator_healthy"]
+    env.close()

@@ -39,7 +39,7 @@ from estimation.ukf import (
     UkfEstimator,
     UnscentedKalmanFilter,
 )
-from estimation.ukf.initialise import InitialisationError
+from estimation.ukf.estimator import NOT_PLACED
 from estimation.ukf.measurements import MeasurementModel, RowKind, ahrs_axis
 from estimation.ukf.sigma_points import CholeskyError, robust_cholesky, sigma_points
 from tensegrity_gym.model.description import load_robot
@@ -1458,8 +1458,16 @@ def test_initialisation_missing_counts_plausible_anchor_ranges(rolling: Recordin
     assert est.initialisation_missing(d, cal, others) == "0 UWB ranges to anchors, 4 needed"
     three = with_anchor_ranges(3)
     assert est.initialisation_missing(d, cal, three) == "3 UWB ranges to anchors, 4 needed"
-    with pytest.raises(InitialisationError, match="3 UWB ranges to anchors"):
-        UkfEstimator().reset(d, cal, three, rec.command, np.random.default_rng(0))
+    # A reset that cannot place the robot starts unplaced and unhealthy, not with an
+    # error, and places it from the first update that has the ranges.
+    unplaced = UkfEstimator()
+    first = unplaced.reset(d, cal, three, rec.command, np.random.default_rng(0))
+    assert not first.healthy and first.is_finite()
+    updates = [unplaced.update(step.samples, step.command) for step in rec.steps[:4]]
+    placed = next(k for k, e in enumerate(updates) if e.reinitialised)
+    assert all(e.healthy for e in updates[placed + 1 :]) and placed < 3
+    assert unplaced.health.reinitialisations_by_reason == {NOT_PLACED: 1}
+    assert np.linalg.norm(updates[-1].com - rec.steps[3].truth.com) < 0.1  # m
     four = with_anchor_ranges(4)
     assert est.initialisation_missing(d, cal, four) is None
     UkfEstimator().reset(d, cal, four, rec.command, np.random.default_rng(0))

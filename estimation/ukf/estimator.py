@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -58,6 +58,9 @@ __all__ = ["FilterStep", "UkfConfig", "UkfDiagnostics", "UkfEstimator"]
 
 
 log = logging.getLogger(__name__)
+
+NOT_PLACED = "not placed at reset"
+"""The re-initialisation a reset asks for when too few UWB ranges reached the anchors."""
 
 
 @dataclass(frozen=True)
@@ -167,6 +170,8 @@ class UkfEstimator:
         self.config = config if config is not None else UkfConfig()
         self.diagnostics = UkfDiagnostics()
         self._ready = False
+        self._unplaced = False
+        """Whether the reset could not place the robot (too few UWB ranges yet)."""
 
     # ------------------------------------------------------------------ set-up
 
@@ -249,6 +254,7 @@ class UkfEstimator:
         self.health = EstimatorHealth(c.health, self.readings.screen)
         self.diagnostics = UkfDiagnostics(health=self.health)
         self.readings.absorb(samples)
+        self._unplaced = False
         if c.initial_positions is not None:
             nodes = np.asarray(c.initial_positions, dtype=np.float64)
             n = d.n_nodes
@@ -259,9 +265,33 @@ class UkfEstimator:
             if not np.all(np.isfinite(nodes)):
                 raise ValueError("UkfConfig.initial_positions has non-finite entries")
         else:
-            nodes = self._fit()
+            nodes = self._first_fit()
         self._start(nodes)
         self._ready = True
+        return self._estimate()
+
+    def _first_fit(self) -> NDArray[np.float64]:
+        """The reset's node positions from its samples; where too few UWB ranges reached
+        the anchors (packets lost), the description's resting shape, placed by the first
+        update that has them (:meth:`_place`), and unhealthy until then."""
+        try:
+            return self._fit()
+        except InitialisationError as err:
+            log.warning("UKF not placed at reset (%s): placed once enough ranges arrive", err)
+            self._unplaced = True
+            self.health.request_reinitialisation(NOT_PLACED)
+            return np.asarray(self.description.initial_positions, dtype=np.float64)
+
+    def _place(self) -> Estimate | None:
+        """Start again from the samples so far if the reset could not place the robot
+        and now can; None otherwise."""
+        try:
+            nodes = self._fit()
+        except (InitialisationError, ValueError, np.linalg.LinAlgError):
+            return None
+        self._unplaced = False
+        self._start(nodes)
+        self.health.reinitialised(placed=True)
         return self._estimate()
 
     def _fit(self) -> NDArray[np.float64]:
@@ -313,6 +343,8 @@ class UkfEstimator:
 
     def _update(self, samples: Sequence[Sample], command: NDArray[np.float64]) -> Estimate:
         step = self.prepare(samples, command)
+        if self._unplaced and (placed := self._place()) is not None:
+            return placed
         try:
             result = self.apply(step, self.filter)
         except (CholeskyError, np.linalg.LinAlgError, FloatingPointError) as err:
@@ -446,4 +478,5 @@ class UkfEstimator:
             rest_lengths=self.readings.rest.copy(),
             covariance=self.filter.P.copy(),
         )
-        return self.health.fill(estimate)
+        filled = self.health.fill(estimate)
+        return replace(filled, healthy=False) if self._unplaced else filled

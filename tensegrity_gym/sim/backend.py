@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import itertools
+import logging
+import math
 from collections.abc import Mapping
 from dataclasses import replace
 from functools import lru_cache
@@ -56,6 +58,8 @@ _SENSOR_KINDS = {
     "uwb": frozenset({"uwb"}),
 }
 
+log = logging.getLogger(__name__)
+
 # A state whose nodes move faster than this, or leave this box, has blown up.
 _MAX_SPEED = 50.0  # m/s
 _MAX_EXTENT = 1.0e3  # m
@@ -72,6 +76,9 @@ _MAX_EXTRA_SETTLE = 60.0  # s
 # many points along each rod), then rests this long before the episode's clock starts.
 _ROD_POINTS = 9
 _TERRAIN_SETTLE = 0.5  # s
+READY_WAIT = 5.0
+"""s: how long a reset rests, sampling, for what the estimator still lacks (a UWB round
+whose packets were lost, say), before it hands over what it has."""
 
 
 @lru_cache(maxsize=8)
@@ -433,7 +440,9 @@ class SimBackend:
 
         ``spawn`` fixes the CoM's ground position ``x``, ``y`` (m, world frame) and the
         robot's ``yaw`` (rad), any of them; the others are drawn as without it.
-        ``ready`` is not waited on: the settling period's samples are all there is."""
+        Where ``ready`` says the estimator lacks something, the robot rests on, its motors
+        holding, and the periods' samples are added, as a robot's driver waits (at most
+        :data:`READY_WAIT` s; then the estimator gets what there is)."""
         check_open(self._closed, "reset")
         pose = _check_spawn(spawn)
         self._rng = rng
@@ -479,7 +488,26 @@ class SimBackend:
         for sched in self._schedules.values():
             sched.due(0.0)  # the t = 0 samples are taken below
         samples = self._sample({name: [snap] for name in self._schedules}, rng)
+        if ready is not None:
+            samples = self._until_ready(samples, ready)
         return StepResult(samples, info=self._episode_info())
+
+    def _until_ready(self, samples: list[Sample], ready: ReadyCheck) -> list[Sample]:
+        """``samples`` and those of further periods at rest while ``ready`` names
+        something missing, for at most :data:`READY_WAIT` s."""
+        d = self.description
+        hold = d.rest_lengths[d.actuated]
+        for period in range(math.ceil(READY_WAIT / self.control_period)):
+            missing = ready(samples)
+            if missing is None:
+                return samples
+            if period == 0:
+                log.info("reset: resting while the estimator lacks %s", missing)
+            result = self.step(hold)
+            if result.diverged:
+                break
+            samples = [*samples, *result.samples]
+        return samples
 
     def _episode_info(self) -> dict[str, object]:
         """What ``info`` says of this episode alone at reset: a randomised world's draws."""
