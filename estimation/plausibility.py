@@ -13,6 +13,7 @@ says, per reading, whether it is plausible and, if not, the first reason why.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -83,6 +84,14 @@ def _judge(present: NDArray[np.bool_], failures: Sequence[tuple[str, ArrayLike]]
             reasons[kind] = hit
         left &= ~bad
     return Verdict(left, reasons)
+
+
+def _all_within(x: NDArray[np.float64], bound: float) -> bool:
+    """True if every entry of ``x`` is finite with a magnitude of at most ``bound``."""
+    if x.size == 0:
+        return True
+    largest = float(np.abs(x).max())
+    return largest <= bound and math.isfinite(largest)  # NaN compares False
 
 
 def _rows(values: ArrayLike, width: int) -> NDArray[np.float64]:
@@ -200,6 +209,8 @@ class PlausibilityBounds:
         Kinds: ``imu_not_finite``, ``accel_over_full_scale``, ``gyro_over_full_scale``.
         """
         a, w = _rows(accel, 3), _rows(gyro, 3)
+        if _all_within(a, self.accel_full_scale) and _all_within(w, self.gyro_full_scale):
+            return Verdict(np.ones(len(a), dtype=bool), {})  # the common case, at once
         finite = np.isfinite(a).all(axis=1) & np.isfinite(w).all(axis=1)
         return _judge(
             np.ones(len(a), dtype=bool),
@@ -245,6 +256,8 @@ class PlausibilityBounds:
         Kinds: ``encoder_not_finite``, ``encoder_out_of_range``.
         """
         x = _rows(rest_lengths, len(self.rest_length_min))
+        if bool(np.all(x >= self.rest_length_min)) and bool(np.all(x <= self.rest_length_max)):
+            return Verdict(np.ones(len(x), dtype=bool), {})  # NaN fails both: not here
         outside = (x < self.rest_length_min) | (x > self.rest_length_max)
         return _judge(
             np.ones(len(x), dtype=bool),

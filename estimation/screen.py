@@ -10,6 +10,7 @@ integer nanoseconds so that the verdicts do not depend on where the clock starte
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -162,7 +163,10 @@ class PlausibilityScreen:
         at once) is kept whole."""
         if not samples:
             return []
-        t = np.array([s.t for s in samples], dtype=np.float64)
+        stamps = [s.t for s in samples]
+        if all(math.isfinite(x) for x in stamps) and max(stamps) - min(stamps) <= MAX_STAMP_LEAD:
+            return list(samples)  # no gap can exceed the span: the common case, at once
+        t = np.array(stamps, dtype=np.float64)
         finite = np.isfinite(t)
         self._count("stamp_not_finite", int(np.count_nonzero(~finite)))
         if not finite.any():
@@ -219,11 +223,11 @@ class PlausibilityScreen:
         self._count_verdict(verdict, valid)
         use = verdict.plausible & valid
         times = np.array([s.t for s in samples], dtype=np.float64)
-        for rod in np.unique(rods[valid]).tolist():
+        for rod in sorted({r for r in rods.tolist() if 0 <= r < len(self._rods)}):
             mine = rods == rod
             stream = f"{prefix}/{self._rods[rod]}"
             use[mine] &= self.monitor.observe_many(stream, times[mine], verdict.plausible[mine])
-        return [bool(u) for u in use]
+        return list(use.tolist())
 
     def _imu(self, samples: list[ImuSample]) -> list[bool]:
         accel = _stack([s.accel for s in samples], 3)
@@ -240,7 +244,7 @@ class PlausibilityScreen:
         self._count_verdict(verdict)
         times = np.array([s.t for s in samples], dtype=np.float64)
         in_use = self.monitor.observe_many("encoders", times, verdict.plausible)
-        return [bool(u) for u in in_use & verdict.plausible]
+        return list((in_use & verdict.plausible).tolist())
 
     def _cables(self, sample: CableLengthSample) -> CableLengthSample | None:
         x = np.asarray(sample.lengths, dtype=np.float64).reshape(-1)

@@ -360,38 +360,34 @@ def test_the_contacts_slip_more_while_the_robot_turns() -> None:
         est._gyro = gyro
         t = est._imu_ns + 5_000_000
         est._imu(ImuSample(t * 1e-9, 0, np.array([0.0, 0.0, 9.81]), gyro, np.zeros(3)), t)
-        density = min(est._slip + c.slip_per_rate * rate, c.slip_max)
+        density = min(est._slip_law[0] + c.slip_per_rate * rate, c.slip_max)
         assert f._q[2] == pytest.approx(density**2, rel=1e-6)  # the rest phase moves the bias
-    assert est._slip == noise_from_description(est.description).contact_velocity
+    assert est._slip_law[0] == noise_from_description(est.description).contact_velocity
 
 
 def test_the_base_rods_endcaps_in_contact_roll_with_its_spin() -> None:
-    est, _, _ = _resting()
-    f = est.filter
-    assert f is not None
-    d = est.description
-    base = [n for n in f.contact_nodes if n in d.rod_nodes[0]]
-    other = [n for n in f.contact_nodes if n not in d.rod_nodes[0]]
-    assert base and other, f.contact_nodes
-    points = dict(zip(f.contact_nodes, f.contact_positions, strict=True))
-    est._gyro = f.gyro_bias + np.array([0.0, 0.0, 2.0])
-    est._roll_base_endcaps(0.01)
-    after = dict(zip(f.contact_nodes, f.contact_positions, strict=True))
-    r = d.rods[0].endcap_radius
-    axis = f.rotation[:, 2]
-    expected = 0.02 * r * np.array([axis[1], -axis[0], 0.0])  # 0.02 rad about the rod
-    for n in base:
-        np.testing.assert_allclose(after[n] - points[n], expected, atol=1e-15)
-    for n in other:
-        np.testing.assert_array_equal(after[n], points[n])
-    # Off: held where they touched down.
-    est, _, _ = _resting(InekfConfig(rolling_endcaps=False))
-    f = est.filter
-    assert f is not None
-    points = f.contact_positions
-    est._gyro = f.gyro_bias + np.array([0.0, 0.0, 2.0])
-    est._imu(ImuSample(9.0, 0, np.array([0.0, 0.0, 9.81]), est._gyro, np.zeros(3)), 9 * 10**9)
-    np.testing.assert_array_equal(f.contact_positions, points)
+    # One propagation spinning at 2 rad/s: the base rod's contacts move by the turn
+    # times the endcap radius along the ground, the others not at all; with rolling off,
+    # none moves.
+    for rolling in (True, False):
+        est, _, _ = _resting(InekfConfig(rolling_endcaps=rolling))
+        f = est.filter
+        assert f is not None
+        d = est.description
+        base = [n for n in f.contact_nodes if n in d.rod_nodes[0]]
+        other = [n for n in f.contact_nodes if n not in d.rod_nodes[0]]
+        assert base and other, f.contact_nodes
+        points = dict(zip(f.contact_nodes, f.contact_positions, strict=True))
+        est._gyro = f.gyro_bias + np.array([0.0, 0.0, 2.0])
+        est._propagate(0.01)
+        after = dict(zip(f.contact_nodes, f.contact_positions, strict=True))
+        axis = f.rotation[:, 2]
+        turn = 0.02 * d.rods[0].endcap_radius if rolling else 0.0  # 0.02 rad about the rod
+        for n in base:
+            expected = turn * np.array([axis[1], -axis[0], 0.0])
+            np.testing.assert_allclose(after[n] - points[n], expected, atol=1e-15)
+        for n in other:
+            np.testing.assert_array_equal(after[n], points[n])
 
 
 @pytest.mark.parametrize(

@@ -417,3 +417,44 @@ def test_the_contacts_slip_density_can_change_between_propagations() -> None:
     np.testing.assert_allclose(grown, expected, atol=1e-15)
     with pytest.raises(ValueError, match="density must be a finite number >= 0"):
         pair[0].set_contact_velocity_noise(-1.0)
+
+
+def test_one_reading_step_is_the_steps_it_fuses() -> None:
+    # propagate_reading = set the slip density by the rate, propagate, add the velocity
+    # variance, roll the rolling contacts: bit for bit, contact by contact.
+    rng = np.random.default_rng(8)
+    pair = [_filter(), _filter()]
+    R, v, p = so3_exp(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3)
+    b_g = np.array([0.01, -0.02, 0.005])
+    for f in pair:
+        f.reset(R, v, p, b_g, np.zeros(3), P0)
+        for node, foot in zip((3, 1, 5), FEET, strict=True):
+            f.augment(node, foot, KIN)
+    gyro, accel, dt = np.array([0.4, -1.2, 2.5]), np.array([0.3, 0.1, 9.9]), 0.005
+    slip = np.array([0.005, 0.05, 0.05])
+    radii = np.array([0.06, 0.0, 0.06])
+    pair[0].propagate_reading(gyro, accel, dt, slip, 1e-3, radii)
+    rate = float(np.linalg.norm(gyro - b_g))
+    ref = pair[1]
+    ref.set_contact_velocity_noise(min(slip[0] + slip[1] * rate, slip[2]))
+    ref.propagate(gyro, accel, dt)
+    ref.add_velocity_variance(1e-3)
+    turn = ref.rotation[:, 2] * ((gyro[2] - b_g[2]) * dt * 0.06)
+    for node in (3, 5):
+        ref.move_contact(node, [turn[1], -turn[0], 0.0])
+    np.testing.assert_array_equal(pair[0].state_matrix, ref.state_matrix)
+    np.testing.assert_array_equal(pair[0].covariance, ref.covariance)
+    with pytest.raises(ValueError, match=r"roll_radii must have shape \(3,\)"):
+        pair[0].propagate_reading(gyro, accel, dt, slip, 0.0, np.zeros(2))
+    with pytest.raises(ValueError, match="dt must be a finite number"):
+        pair[0].propagate_reading(gyro, accel, 0.0, slip, 0.0, radii)
+
+
+def test_a_filter_is_finite_unless_an_entry_is_not() -> None:
+    f = _filter()
+    f.reset(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), P0 * 1e300)
+    assert f.is_finite()  # its sum overflows; every entry is finite
+    f.reset(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), np.zeros(3), P0)
+    f.augment(0, FEET[0], KIN)
+    f.move_contact(0, [np.inf, 0.0, 0.0])
+    assert not f.is_finite()

@@ -109,6 +109,31 @@ def test_each_check_names_the_first_reason(robot: Any) -> None:
     assert v.counts() == {"encoder_out_of_range": 1, "encoder_not_finite": 1}
 
 
+def test_a_plausible_batch_at_once_and_one_bad_reading_in_it(robot: Any) -> None:
+    # The common case (every reading plausible) is judged in one test; a batch with one
+    # reading that is not finite or out of range still names it.
+    d, _, b = robot
+    rng = np.random.default_rng(0)
+    accel = rng.uniform(-b.accel_full_scale, b.accel_full_scale, (40, 3))
+    gyro = rng.uniform(-b.gyro_full_scale, b.gyro_full_scale, (40, 3))
+    v = b.imu(accel, gyro)
+    assert v.plausible.all() and v.counts() == {}
+    for bad, kind in ((np.inf, "imu_not_finite"), (np.nan, "imu_not_finite"),
+                      (1.01 * b.gyro_full_scale, "gyro_over_full_scale")):  # fmt: skip
+        g = gyro.copy()
+        g[17, 1] = bad
+        v = b.imu(accel, g)
+        assert np.flatnonzero(~v.plausible).tolist() == [17] and v.counts() == {kind: 1}
+    lo, hi, _ = d.motor_limits
+    readings = rng.uniform(lo, hi, (10, len(lo)))
+    assert b.encoders(readings).plausible.all()
+    for bad, kind in ((-np.inf, "encoder_not_finite"), (2 * hi[0], "encoder_out_of_range")):
+        r = readings.copy()
+        r[3, 0] = bad
+        v = b.encoders(r)
+        assert np.flatnonzero(~v.plausible).tolist() == [3] and v.counts() == {kind: 1}
+
+
 @pytest.mark.parametrize("preset", ["three_bar", "three_bar_large", "superball"])
 def test_nothing_simulated_is_implausible(preset: str) -> None:
     """Half a second of every simulated sensor under random commands: not one reading

@@ -190,7 +190,7 @@ class InekfEstimator:
         self._t_ns = seconds_to_ns(max((s.t for s in samples), default=0.0))
         for s in samples:
             if isinstance(s, ImuSample):
-                self._low_pass(s)
+                self._low_pass(s.rod, np.ascontiguousarray(s.accel, dtype=np.float64))
             self._absorb(s)
         up = R.T @ _UP
         self._solve_shape(up)
@@ -201,8 +201,10 @@ class InekfEstimator:
         self._shape_ns = self._t_ns
         p = initial_position(d, R, self.shape)
         noise = c.noise if c.noise is not None else noise_from_description(d)
-        self._slip = noise.contact_velocity
-        self._slip_cap = max(c.slip_max, self._slip)
+        slip = noise.contact_velocity
+        self._slip_law = np.array([slip, c.slip_per_rate, max(c.slip_max, slip)])
+        self._rolled_for: tuple[int, ...] | None = None
+        self._roll_radii = np.zeros(0)
         self.filter = RightInvariantEkf(noise, gravity=np.array([0.0, 0.0, -d.gravity]))
         self.filter.reset(R, np.zeros(3), p, bias_g, np.zeros(3), self._initial_covariance(R))
         if len(gyro):
@@ -253,9 +255,10 @@ class InekfEstimator:
                 corrected = self._kinematics() or corrected
                 pending = None
             if isinstance(s, ImuSample):
-                self._low_pass(s)
+                accel = np.ascontiguousarray(s.accel, dtype=np.float64)
+                self._low_pass(s.rod, accel)
                 if s.rod == self.config.base_rod:
-                    self._imu(s, t_ns)
+                    self._imu(s, t_ns, accel)
                 continue
             if self._absorb(s):
                 self._t_ns = max(self._t_ns, t_ns)
@@ -267,52 +270,42 @@ class InekfEstimator:
             corrected = self._kinematics() or corrected
         return corrected
 
-    def _imu(self, s: ImuSample, t_ns: int) -> None:
-        """Propagate over the time since the last reading with that reading held."""
+    def _imu(self, s: ImuSample, t_ns: int, accel: NDArray[np.float64] | None = None) -> None:
+        """Propagate over the time since the last reading with that reading held;
+        ``accel``: the reading's as a (3,) float64 array, where the caller has it."""
         if self._imu_ns is not None and t_ns > self._imu_ns:
             self._propagate(ns_to_seconds(t_ns - self._imu_ns))
         if self._imu_ns is None or t_ns >= self._imu_ns:
             self._imu_ns = t_ns
-            self._gyro = np.asarray(s.gyro, dtype=np.float64)
-            self._accel = np.asarray(s.accel, dtype=np.float64)
+            self._gyro = np.ascontiguousarray(s.gyro, dtype=np.float64)
+            self._accel = (
+                np.ascontiguousarray(s.accel, dtype=np.float64) if accel is None else accel
+            )
             self._clipped = bool(np.abs(self._accel).max() >= self._clip)
             self._t_ns = max(self._t_ns, t_ns)
             self._rest_phase(self._gyro)
 
     def _propagate(self, dt: float) -> None:
-        """Propagate over ``dt`` s with the held reading: the contacts' slip density by
-        the angular rate, the velocity made uncertain where the reading clipped, the
-        base rod's endcaps in contact rolled."""
-        f, c = self.filter, self.config
-        assert f is not None
-        if c.slip_per_rate > 0.0:  # the endcaps slide as the robot tips over
-            wx, wy, wz = (self._gyro - f.gyro_bias).tolist()
-            rate = math.sqrt(wx * wx + wy * wy + wz * wz)
-            f.set_contact_velocity_noise(min(self._slip + c.slip_per_rate * rate, self._slip_cap))
-        f.propagate(self._gyro, self._accel, dt)
-        if self._clipped:
-            # The reading stopped at the full scale: the velocity change it missed is
-            # unknown, of the order of the full scale over the step.
-            f.add_velocity_variance((self._full_scale * dt) ** 2)
-        if c.rolling_endcaps:
-            self._roll_base_endcaps(dt)
-
-    def _roll_base_endcaps(self, dt: float) -> None:
-        """Roll the base rod's endcaps in contact by its spin over ``dt`` s: a sphere of
-        radius r turning by theta about the rod (world frame) moves its centre by
-        theta x (r up). The rods roll about their own axes as the robot tips over, and
-        an endcap held fixed made the estimate lag the robot's travel (papers/002's
-        contact model is a point foot); the other rods' spin is not measured."""
+        """Propagate over ``dt`` s with the held reading, in one compiled call
+        (:meth:`RightInvariantEkf.propagate_reading`): the contacts' slip density by the
+        angular rate, as the endcaps slide while the robot tips over; the velocity made
+        uncertain where the reading clipped, by the full scale over the step (the
+        velocity change it missed); the base rod's endcaps in contact rolled by its
+        spin (gyro z): a sphere of radius r turning by theta about the rod moves its
+        centre by theta x (r up). The rods roll about their own axes as the robot tips
+        over, and an endcap held fixed made the estimate lag the robot's travel
+        (papers/002's contact model is a point foot); the other rods' spin is not
+        measured."""
         f = self.filter
         assert f is not None
-        nodes = [n for n in f.contact_nodes if n in self._base_nodes]
-        if not nodes:
-            return
-        spin = (self._gyro[2] - f.gyro_bias[2]) * dt  # body z runs along the base rod
-        turn = f.rotation[:, 2] * (spin * self._base_endcap_radius)
-        shift = np.array([turn[1], -turn[0], 0.0])  # turn x (r up), written out: 20x faster
-        for node in nodes:
-            f.move_contact(node, shift)
+        nodes = f.contact_nodes
+        if nodes != self._rolled_for:
+            self._rolled_for = nodes
+            self._roll_radii = np.array(
+                [self._base_endcap_radius if n in self._base_nodes else 0.0 for n in nodes]
+            ) if self.config.rolling_endcaps else np.zeros(len(nodes))  # fmt: skip
+        variance = (self._full_scale * dt) ** 2 if self._clipped else 0.0
+        f.propagate_reading(self._gyro, self._accel, dt, self._slip_law, variance, self._roll_radii)
 
     def _rest_phase(self, gyro: NDArray[np.float64]) -> None:
         """While the robot rests after reset, the gyro's mean is its bias."""
@@ -327,18 +320,15 @@ class InekfEstimator:
         assert self.filter is not None
         self.filter.set_gyro_bias(self._rest_sum / self._rest_n)
 
-    def _low_pass(self, s: ImuSample) -> None:
-        """Each rod's accelerometer low-passed: its tilt for the shape (``rod_up``)."""
-        if 0 <= s.rod < len(self._rod_accel):
-            a = np.asarray(s.accel, dtype=np.float64)
-            last = self._rod_accel[s.rod]
-            self._rod_accel[s.rod] = a if np.isnan(last[0]) else last + ROD_TILT_GAIN * (a - last)
-
-    def _rod_up(self) -> NDArray[np.float64]:
-        """(n_rods, 3): each rod's up in its own frame, NaN rows where it has no IMU."""
-        norm = np.linalg.norm(self._rod_accel, axis=1, keepdims=True)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.asarray(self._rod_accel / norm)
+    def _low_pass(self, rod: int, accel: NDArray[np.float64]) -> None:
+        """Each rod's accelerometer ``accel`` (3,) low-passed: its tilt for the shape
+        (``rod_up``)."""
+        if 0 <= rod < len(self._rod_accel):
+            last = self._rod_accel[rod]
+            if math.isnan(last[0]):
+                last[:] = accel
+            else:
+                last += ROD_TILT_GAIN * (accel - last)
 
     def _shape_due(self, t_ns: int) -> bool:
         if self._shape_ns is None:
@@ -365,7 +355,7 @@ class InekfEstimator:
             contacts = self.in_contact
         solution = self.reconstructor.solve(
             distances, weights, up_body=up, contacts=contacts, warm=self.shape,
-            rod_up=self._rod_up(),
+            rod_up=self._rod_accel,  # the solver takes each row's direction
         )  # fmt: skip
         if solution.converged:
             self.shape = solution.positions
@@ -387,7 +377,7 @@ class InekfEstimator:
         for node in [n for n in f.contact_nodes if not now[n]]:
             f.marginalise(node)
         cov_touch = self._cov_touch
-        if not np.array_equal(now, self.in_contact):
+        if (now != self.in_contact).any():
             for touched in np.flatnonzero(now & ~self.in_contact).tolist():
                 if touched not in f.contact_nodes:
                     f.augment(touched, self.shape[touched], cov_touch)
@@ -438,7 +428,7 @@ class InekfEstimator:
         assert f is not None
         if not f.is_finite():
             reason = "not finite"
-        elif float(np.linalg.norm(f.velocity)) > self.config.max_speed:
+        elif math.hypot(*f.velocity.tolist()) > self.config.max_speed:
             reason = "too fast"
         elif (
             self._refused_since_ns is not None

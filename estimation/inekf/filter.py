@@ -62,6 +62,8 @@ CHI2_3DOF_999 = 16.266236196238129
 
 _SMALL = 1e-4  # rad: below it the series of exp and J (to theta^4) are exact in doubles
 _BASE = 15  # the covariance's size without contacts: rotation, velocity, position, biases
+_POSE_COLUMNS = np.array([0, 1, 2, 6, 7, 8])  # rotation and position in P
+_POSE_ROWS = _POSE_COLUMNS[:, None]
 
 
 @dataclass(frozen=True)
@@ -283,6 +285,40 @@ def _propagate(
         r0, r1, r2 = T[i, 0], T[i, 1], T[i, 2]
         for j in range(3):
             T[i, j] = r0 * dR[0, 0, j] + r1 * dR[0, 1, j] + r2 * dR[0, 2, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _propagate_reading(
+    T: NDArray[np.float64],
+    b: NDArray[np.float64],
+    P: NDArray[np.float64],
+    gyro: NDArray[np.float64],
+    accel: NDArray[np.float64],
+    dt: float,
+    g: NDArray[np.float64],
+    q: NDArray[np.float64],
+    slip: NDArray[np.float64],
+    velocity_variance: float,
+    roll_radii: NDArray[np.float64],
+) -> None:
+    """:func:`_propagate` with what an estimator adds per reading, in one call: the slip
+    variance q[2] from the angular rate (slip: density at rest, growth per rad/s, cap;
+    no growth keeps q[2]), ``velocity_variance`` on the velocity, and each contact's
+    point rolled by ``roll_radii[k]`` m times the turn about body z over dt, along the
+    ground: d_k += (R e_z) (turn r_k) x e_z, with R after the step."""
+    if slip[1] > 0.0:
+        w0, w1, w2 = gyro[0] - b[0], gyro[1] - b[1], gyro[2] - b[2]
+        density = min(slip[0] + slip[1] * math.sqrt(w0 * w0 + w1 * w1 + w2 * w2), slip[2])
+        q[2] = density * density
+    _propagate(T, b, P, gyro, accel, dt, g, q)
+    for i in range(3, 6):
+        P[i, i] += velocity_variance
+    spin = (gyro[2] - b[2]) * dt
+    for k in range(roll_radii.shape[0]):
+        if roll_radii[k] != 0.0:
+            arc = spin * roll_radii[k]
+            T[0, 5 + k] += T[1, 2] * arc
+            T[1, 5 + k] -= T[0, 2] * arc
 
 
 @numba.njit(cache=True, nogil=True)
@@ -672,6 +708,45 @@ class RightInvariantEkf:
             float(dt), self.gravity, self._q,
         )  # fmt: skip
 
+    def propagate_reading(
+        self,
+        gyro: NDArray[np.float64],
+        accel: NDArray[np.float64],
+        dt: float,
+        slip: NDArray[np.float64],
+        velocity_variance: float,
+        roll_radii: NDArray[np.float64],
+    ) -> None:
+        """:meth:`propagate` with an estimator's per-reading additions, in one compiled
+        call (the estimator's hot path: arrays are taken as they are, float64).
+
+        Args:
+            gyro, accel: (3,) the reading, as in :meth:`propagate`.
+            dt: s.
+            slip: (3,) the contacts' slip density (m/s/sqrt(Hz)) at rest, its growth per
+                rad/s of angular rate (less the gyro bias) and its cap; a growth of 0
+                keeps the density as it is (:meth:`set_contact_velocity_noise`).
+            velocity_variance: (m/s)^2 per axis added to the velocity's error after the
+                step (:meth:`add_velocity_variance`).
+            roll_radii: (K,) m, per contact in state order: an endcap of that radius
+                rolling with the body's turn about its z axis (0: not rolling); its point
+                moves by (R e_z) (turn r) x e_z (:meth:`move_contact`).
+        """
+        if not (dt > 0.0 and math.isfinite(dt)):
+            raise ValueError(f"dt must be a finite number of seconds > 0, got {dt!r}")
+        if roll_radii.shape != (len(self._nodes),):
+            raise ValueError(
+                f"roll_radii must have shape ({len(self._nodes)},), got {roll_radii.shape}"
+            )
+        if not (velocity_variance >= 0.0 and math.isfinite(velocity_variance)):
+            raise ValueError(
+                f"velocity_variance must be finite and >= 0, got {velocity_variance!r}"
+            )
+        _propagate_reading(
+            self._T, self._b, self._P, gyro, accel, float(dt), self.gravity, self._q, slip,
+            float(velocity_variance), roll_radii,
+        )  # fmt: skip
+
     def augment(self, node: int, p_body: ArrayLike, cov_body: ArrayLike) -> None:
         """Add node's contact at d = p + R p_body (p_body (3,) m, body frame), its error
         that of the position plus R cov_body R^T (cov_body (3, 3) m^2), eq. 9."""
@@ -755,6 +830,9 @@ class RightInvariantEkf:
 
     def is_finite(self) -> bool:
         """True if the state and the covariance are free of NaN and inf."""
+        total = float(self._T.sum()) + float(self._b.sum()) + float(self._P.sum())
+        if math.isfinite(total):  # a sum is finite only if every term is
+            return True
         return bool(
             np.all(np.isfinite(self._T)) and np.all(np.isfinite(self._b))
             and np.all(np.isfinite(self._P))
@@ -812,5 +890,4 @@ class RightInvariantEkf:
     @property
     def pose_covariance(self) -> NDArray[np.float64]:
         """(6, 6): the rotation and position block of P, in that order (rad, m)."""
-        idx = np.r_[0:3, 6:9]
-        return np.asarray(self._P[np.ix_(idx, idx)])
+        return np.asarray(self._P[_POSE_ROWS, _POSE_COLUMNS])

@@ -809,10 +809,11 @@ def _lm(
         lam = max(0.25 * lam, 1e-10)
         gain = cost - cost2
         C, U, cost = C2, U2, cost2
-        E1, E2 = _tangents(U)
-        _evaluate(C, U, E1, E2, prob, r, J, True)
+        r, r2 = r2, r  # the residuals at the new C, U (they do not depend on the tangents)
         if np.max(np.abs(step)) < xtol or gain <= ftol * (cost + gain):
             return C, U, r, it, True
+        E1, E2 = _tangents(U)
+        _evaluate(C, U, E1, E2, prob, r, J, True)  # the Jacobian only where it is needed
     return C, U, r, max_iterations, False
 
 
@@ -964,6 +965,28 @@ def _triangle_violation(
     return -1, 0.0
 
 
+@numba.njit(cache=True, nogil=True)
+def _short_cables(
+    p: NDArray[np.float64],
+    pairs: NDArray[np.int64],
+    target: NDArray[np.float64],
+    margin: NDArray[np.float64],
+    candidates: NDArray[np.bool_],
+) -> NDArray[np.int64]:
+    """The ``candidates`` cables shorter in ``p`` (n, 3) than their target less their
+    margin, (k,) indices in order."""
+    out = np.empty(pairs.shape[0], dtype=np.int64)
+    n = 0
+    for k in range(pairs.shape[0]):
+        if candidates[k]:
+            a, b = pairs[k, 0], pairs[k, 1]
+            d0, d1, d2 = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
+            if math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) < target[k] - margin[k]:
+                out[n] = k
+                n += 1
+    return out[:n]
+
+
 # ------------------------------------------------------------------------ the solver
 
 
@@ -1056,11 +1079,40 @@ class ShapeReconstructor:
         # the encoder's reading plus a stretch, never shorter (two-sided residuals).
         self._reeled = np.zeros(d.n_cables, dtype=bool)
         self._reeled[d.actuated] = np.isfinite(d.motor_min_stretch)
+        self._constants()
+
+    def _constants(self) -> None:
+        """What every solve passes on unchanged, built once (a solve's setup in Python
+        cost as much as the compiled search)."""
+        c, d = self.config, self.description
+        self._rod_nodes64 = d.rod_nodes.astype(np.int64)
+        self._cable_nodes64 = d.cable_nodes.astype(np.int64)
+        sigma = np.full(d.n_cables, c.rest_shape_sigma)
+        sigma[d.actuated] = c.encoder_sigma
+        self._model_weights = sigma**-2.0
+        self._settings = np.array(
+            [c.max_iterations, c.xtol, c.ftol, self._max_residual, c.switch_margin,
+             c.search_cost, c.max_slack],
+            dtype=np.float64,
+        )  # fmt: skip
+        fl = np.zeros(_N_FLOATS)
+        fl[_SW_GRAVITY], fl[_SW_SPIN] = 1.0 / c.gravity_sigma, 1.0 / c.spin_sigma
+        fl[_SW_CONSTRAINT], fl[_GROUND_TOL] = 1.0 / c.constraint_tolerance, 2.0 * c.gravity_sigma
+        fl[_SW_TILT] = 1.0 / c.tilt_sigma
+        self._floats = fl
+        flags = np.zeros(_N_FLAGS, dtype=np.int64)
+        flags[_PENETRATION] = c.non_penetration
+        flags[_PRISM] = self._ends is not None
+        flags[_GEOMETRIC], flags[_CHIRALITY] = c.geometric, c.chirality
+        self._flags = flags
+        self._end_nodes = self._ends or (np.zeros(0, np.int64), np.zeros(0, np.int64))
 
     def _layout(self) -> None:
         """Which free rod (-1: the base rod) and end (-1 first, +1 second) each node is."""
         d = self.description
         self._free = [q for q in range(d.n_rods) if q != self.base_rod]
+        self._free_nodes = d.rod_nodes[self._free]
+        self._free_rods = np.array(self._free, dtype=np.intp)
         self._node_rod = np.full(d.n_nodes, -1, dtype=np.int64)
         self._node_sign = np.zeros(d.n_nodes)
         self._half = np.array([0.5 * d.rods[q].length for q in self._free])
@@ -1120,7 +1172,7 @@ class ShapeReconstructor:
         upper bound a slack cable may fall short of. A reading that is not finite is
         left out.
         """
-        d, c = self.description, self.config
+        d = self.description
         act = d.actuated
         enc = np.asarray(rest_lengths, dtype=np.float64)
         if enc.shape != (d.n_actuated,):
@@ -1128,11 +1180,9 @@ class ShapeReconstructor:
         rest = d.rest_lengths.copy()
         rest[act] = enc
         model = rest + self._prestretch
-        sigma = np.full(d.n_cables, c.rest_shape_sigma)
-        sigma[act] = c.encoder_sigma
-        w_model = sigma**-2.0
+        w_model = self._model_weights
         if cable_lengths is None:
-            return model, w_model
+            return model, w_model.copy()
         s = np.array(cable_lengths, dtype=np.float64)
         if s.shape != (d.n_cables,):
             raise ValueError(f"cable_lengths must be ({d.n_cables},), got {s.shape}")
@@ -1164,11 +1214,11 @@ class ShapeReconstructor:
             contacts: (n_nodes,) bool, the endcaps on the ground; None: the three lowest
                 along ``up_body`` (a prism at rest stands on three endcaps).
             warm: (n_nodes, 3) body frame start, e.g. the last shape; None: the rest shape.
-            rod_up: (n_rods, 3), each rod's unit up vector in its own frame (its own
-                accelerometer's, like ``up_body``), rows of NaN where unknown; not in
-                the paper. Only the component along the rod is used (u . up, how far
-                the rod tilts), which pins what the cables leave loose; needs
-                ``up_body``.
+            rod_up: (n_rods, 3), each rod's up direction in its own frame (its own
+                accelerometer's, like ``up_body``; any length but 0), rows of NaN where
+                unknown; not in the paper. Only the component along the rod is used
+                (u . up, how far the rod tilts), which pins what the cables leave loose;
+                needs ``up_body``.
 
         Where the warm start's fit is infeasible or costs more than ``search_cost``,
         the mirror image of its result (if infeasible), the rest shape turned to fit
@@ -1201,6 +1251,12 @@ class ShapeReconstructor:
         again = self._solve_from(solution.positions, target, w, up, lowest, tilt)  # its own feet
         return again if again.converged else solution
 
+    def _margin(self, w: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(n_cables,) m: how much shorter than its distance a cable may be before it is
+        slack (``slack_sigmas`` of its noise); 0 where unknown (weight 0)."""
+        used = w > 0.0
+        return np.where(used, self.config.slack_sigmas / np.sqrt(np.where(used, w, 1.0)), 0.0)
+
     def _tilts(
         self, rod_up: NDArray[np.float64] | None, up: NDArray[np.float64] | None
     ) -> NDArray[np.float64]:
@@ -1213,9 +1269,9 @@ class ShapeReconstructor:
             raise ValueError(f"rod_up must be ({self.description.n_rods}, 3), got {v.shape}")
         if up is None:
             raise ValueError("rod_up needs up_body: a rod's tilt is measured against up")
-        norm = np.linalg.norm(v[self._free], axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            tilt[:] = np.where(norm > 0.0, v[self._free, 2] / norm, np.nan)
+        free = v[self._free_rods]
+        norm = np.sqrt((free * free).sum(axis=1))
+        np.divide(free[:, 2], norm, out=tilt, where=norm > 0.0)  # NaN stays where not
         return tilt
 
     def _checked(
@@ -1240,16 +1296,17 @@ class ShapeReconstructor:
         self, target: NDArray[np.float64], w: NDArray[np.float64], start: NDArray[np.float64]
     ) -> str | None:
         """Why no shape can be solved for, before trying; None if one may be."""
-        if not (np.all(np.isfinite(target)) and np.all(np.isfinite(w)) and np.all(w >= 0.0)):
+        # a sum is finite only if every term is: one test for the common case
+        if not (math.isfinite(float(target.sum() + w.sum())) and float(w.min()) >= 0.0):
             return "distances or weights not finite, or a weight negative"
-        if not np.all(np.isfinite(start)):
+        if not math.isfinite(float(start.sum())):
             return "warm start not finite"
         used = w > 0.0
-        margin = np.where(used, self.config.slack_sigmas / np.sqrt(np.where(used, w, 1.0)), 0.0)
+        margin = self._margin(w)
         d = self.description
         cable, bound = _triangle_violation(
-            d.n_nodes, d.rod_nodes.astype(np.int64), self._rod_lengths,
-            d.cable_nodes.astype(np.int64), target, margin, used,
+            d.n_nodes, self._rod_nodes64, self._rod_lengths, self._cable_nodes64, target,
+            margin, used,
         )  # fmt: skip
         if cable < 0:
             return None
@@ -1281,24 +1338,12 @@ class ShapeReconstructor:
         tilt: NDArray[np.float64],
     ) -> ShapeSolution:
         """Search from ``start`` (:func:`_search`) and report what it found."""
-        c = self.config
         warm = self._params(start)
         prob = self._problem(target, w, up, contacts, warm[0], tilt)
-        settings = np.array(
-            [
-                c.max_iterations,
-                c.xtol,
-                c.ftol,
-                self._max_residual,
-                c.switch_margin,
-                c.search_cost,
-                c.max_slack,
-            ],
-            dtype=np.float64,
-        )
         code, rms, C, U, iterations = _search(
-            warm, self._rest_params, self._mirror_normal(up), prob, c.slack_search, settings
-        )
+            warm, self._rest_params, self._mirror_normal(up), prob, self.config.slack_search,
+            self._settings,
+        )  # fmt: skip
         if code != _OK:
             return self._failed(self._why(code, rms), iterations, rms)
         positions = self._positions(C, U)
@@ -1330,34 +1375,29 @@ class ShapeReconstructor:
         """The kernels' arrays. Gravity fixes the spin about z when two endcaps touch,
         one off the z axis (a base-rod endcap's height pins the others' just as well);
         otherwise the free rods' centres keep ``spin_ref``'s (F, 3) rotation about z."""
-        c, d = self.config, self.description
+        c = self.config
         off_axis = contacts & (self._node_rod >= 0)
         gravity = up is not None and contacts.sum() >= 2 and bool(off_axis.any())
         sw = np.sqrt(w)
         slack = np.where(w > 0.0, c.slack_sigmas / np.where(w > 0.0, sw, 1.0), np.inf)
         slack[self._reeled] = np.inf  # a motor holding its cable taut: never slack
-        fl = np.zeros(_N_FLOATS)
-        fl[_SW_GRAVITY], fl[_SW_SPIN] = 1.0 / c.gravity_sigma, 1.0 / c.spin_sigma
-        fl[_SW_CONSTRAINT], fl[_GROUND_TOL] = 1.0 / c.constraint_tolerance, 2.0 * c.gravity_sigma
-        fl[_SW_TILT] = 1.0 / c.tilt_sigma
-        flags = np.zeros(_N_FLAGS, dtype=np.int64)
-        flags[_GRAVITY], flags[_PENETRATION] = gravity, c.non_penetration
-        flags[_PRISM] = self._ends is not None
-        flags[_GEOMETRIC], flags[_CHIRALITY] = c.geometric, c.chirality
-        ends = self._ends or (np.zeros(0, np.int64), np.zeros(0, np.int64))
+        flags = self._flags.copy()
+        flags[_GRAVITY] = gravity
+        ends = self._end_nodes
         zsign, sign_geo, sign_chi = self._signs
         return (
             self._base, self._node_rod, self._node_sign, self._half,
-            d.rod_nodes.astype(np.int64), d.cable_nodes.astype(np.int64), target, sw, slack,
+            self._rod_nodes64, self._cable_nodes64, target, sw, slack,
             np.zeros(3) if up is None else up, contacts, zsign, self._clearance,
-            np.ascontiguousarray(spin_ref), ends[0], ends[1], sign_geo, sign_chi, tilt, fl, flags,
+            np.ascontiguousarray(spin_ref), ends[0], ends[1], sign_geo, sign_chi, tilt,
+            self._floats, flags,
         )  # fmt: skip
 
     def _params(
         self, positions: NDArray[np.float64]
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Free rods' centres and unit axes (F, 3) of node positions (n, 3)."""
-        rn = self.description.rod_nodes[self._free]
+        rn = self._free_nodes
         a, b = positions[rn[:, 0]], positions[rn[:, 1]]
         axis = b - a
         return 0.5 * (a + b), axis / np.linalg.norm(axis, axis=1, keepdims=True)
@@ -1377,7 +1417,6 @@ class ShapeReconstructor:
     def _slack(
         self, positions: NDArray[np.float64], target: NDArray[np.float64], w: NDArray[np.float64]
     ) -> tuple[int, ...]:
-        used = w > 0.0
-        margin = self.config.slack_sigmas / np.sqrt(np.where(used, w, 1.0))
-        short = member_lengths(positions, self.description.cable_nodes) < target - margin
-        return tuple(int(k) for k in np.flatnonzero(short & used & ~self._reeled))
+        candidates = (w > 0.0) & ~self._reeled
+        short = _short_cables(positions, self._cable_nodes64, target, self._margin(w), candidates)
+        return tuple(short.tolist())
