@@ -16,7 +16,7 @@ from gymnasium.utils.env_checker import check_env
 from agents.cli import main
 from agents.offline import estimate_bag
 from estimation.inekf import InekfConfig, InekfEstimator
-from estimation.inekf.config import noise_from_description
+from estimation.inekf.config import PAPER_LENGTHS, PAPER_ROD_LENGTH, noise_from_description
 from estimation.inekf.contacts import ContactThresholds, ShapeContactDetector
 from estimation.inekf.initialise import levelled
 from tensegrity_gym.model.description import load_robot
@@ -259,6 +259,29 @@ def test_bad_parameters_are_one_line_errors() -> None:
         InekfConfig(gate_probability=1.0)
 
 
+def test_lengths_left_unset_follow_the_robots_size() -> None:
+    # papers/002's values hold on its 1.45 m rods; the 0.325 m robot gets them scaled,
+    # and a value given is kept.
+    large, small = load_robot("three_bar_large"), load_robot("three_bar")
+    assert large.rods[0].length == PAPER_ROD_LENGTH
+    at_paper = InekfConfig().for_robot(large)
+    for name, value in PAPER_LENGTHS.items():
+        assert getattr(at_paper, name) == value
+    scaled = InekfConfig(kinematics_std=0.05).for_robot(small)
+    assert scaled.kinematics_std == 0.05
+    assert scaled.contact_std == pytest.approx(0.1 * 0.325 / 1.45)
+    assert scaled.slip_max == pytest.approx(0.05 * 0.325 / 1.45)
+    est = InekfEstimator()
+    backend = SimBackend(small)
+    start = backend.reset(np.random.default_rng(0))
+    est.reset(small, backend.calibration, start.samples, small.rest_lengths[small.actuated],
+              np.random.default_rng(0))  # fmt: skip
+    assert est.requested == InekfConfig() and est.config.slip_per_rate == pytest.approx(
+        0.05 * 0.325 / 1.45
+    )
+    backend.close()
+
+
 def test_the_drift_table_scores_a_known_offset_and_a_perfect_estimate() -> None:
     from dataclasses import replace
 
@@ -346,6 +369,22 @@ def test_a_clipped_accelerometer_makes_the_velocity_uncertain() -> None:
     # The clipped step adds (full scale x dt)^2 per axis; a reading in range adds ~1e-7.
     assert np.all(within < 1e-4), within
     assert np.all(grown > 0.9 * (full * dt) ** 2), (grown, (full * dt) ** 2)
+
+
+def test_a_saturated_gyro_makes_the_rotation_uncertain() -> None:
+    # The small robot under a learned policy spins past the gyro's 2000 deg/s: a held
+    # rotation error then ran the estimate 69 m off in 30 s (ThreeBarRoll-v0, seed 1002).
+    est, backend, hold = _resting()
+    f = est.filter
+    assert f is not None
+    full = backend.description.sensors.imu.gyro_full_scale
+    imu = [s for s in backend.step(hold).samples if isinstance(s, ImuSample)]
+    before = np.diag(f.covariance)[:3].copy()
+    spin = ImuSample(imu[0].t, imu[0].rod, imu[0].accel, np.array([0.0, full, 0.0]), imu[0].mag)
+    est._imu(spin, round(spin.t * 1e9))
+    est._imu(imu[1], round(imu[1].t * 1e9))
+    dt = imu[1].t - imu[0].t
+    assert np.all(np.diag(f.covariance)[:3] - before > 0.9 * (full * dt) ** 2)
 
 
 def test_the_contacts_slip_more_while_the_robot_turns() -> None:

@@ -444,6 +444,14 @@ def test_one_reading_step_is_the_steps_it_fuses() -> None:
         ref.move_contact(node, [turn[1], -turn[0], 0.0])
     np.testing.assert_array_equal(pair[0].state_matrix, ref.state_matrix)
     np.testing.assert_array_equal(pair[0].covariance, ref.covariance)
+    # A turn the gyro missed (a reading at its full scale) adds to the rotation alone.
+    turned = copy.deepcopy(pair[0])
+    pair[0].propagate_reading(gyro, accel, dt, slip, 0.0, radii)
+    turned.propagate_reading(gyro, accel, dt, slip, 0.0, radii, rotation_variance=4e-4)
+    grown = turned.covariance - pair[0].covariance
+    np.testing.assert_allclose(np.diag(grown)[:3], 4e-4, rtol=1e-12)
+    grown[:3, :3] -= np.eye(3) * 4e-4
+    np.testing.assert_allclose(grown, 0.0, atol=1e-15)
     with pytest.raises(ValueError, match=r"roll_radii must have shape \(3,\)"):
         pair[0].propagate_reading(gyro, accel, dt, slip, 0.0, np.zeros(2))
     with pytest.raises(ValueError, match="dt must be a finite number"):

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 from estimation.health import HealthParams
@@ -14,7 +14,13 @@ if TYPE_CHECKING:
     from estimation.inekf.contacts import ContactThresholds
     from tensegrity_gym.model.description import RobotDescription
 
-__all__ = ["CONTACT_SOURCES", "InekfConfig", "noise_from_description"]
+__all__ = [
+    "CONTACT_SOURCES",
+    "PAPER_LENGTHS",
+    "PAPER_ROD_LENGTH",
+    "InekfConfig",
+    "noise_from_description",
+]
 
 BIAS_WALK = 1e-5
 """Random-walk density of both IMU biases (per sqrt(Hz)): a bias that changes slowly over
@@ -40,6 +46,17 @@ def noise_from_description(description: RobotDescription) -> InekfNoise:
         contact_velocity=CONTACT_SLIP,
     )
 
+
+PAPER_ROD_LENGTH = 1.45
+"""m: the rods of papers/002's robot, on which the lengths of :data:`PAPER_LENGTHS` hold."""
+PAPER_LENGTHS = {
+    "contact_std": 0.1,
+    "kinematics_std": 0.08,
+    "slip_per_rate": 0.05,
+    "slip_max": 0.05,
+}
+"""The defaults of the :class:`InekfConfig` fields that scale with the robot's size, on
+papers/002's 1.45 m rods (m, m, m/s/sqrt(Hz) per rad/s, m/s/sqrt(Hz))."""
 
 CONTACT_SOURCES = ("auto", "sensors", "shape")
 """Where contacts come from: the contact sensors (``"sensors"``), the shape and gravity
@@ -70,31 +87,38 @@ class InekfConfig:
     contact_thresholds: ContactThresholds | None = None
     """Heights for contacts from the shape; None: in proportion to the rods
     (:meth:`ContactThresholds.for_rod_length`)."""
-    contact_std: float = 0.1
+    contact_std: float | None = None
     """m: standard deviation of an endcap's world position when it touches down, per
     axis (eq. 9: the shape solver gives no Jacobian, so it is a parameter, as in the
-    paper)."""
-    kinematics_std: float = 0.08
+    paper). None: 0.1 m on papers/002's 1.45 m rods, in proportion to the robot's
+    (:meth:`for_robot`; so are the other lengths whose default is None)."""
+    kinematics_std: float | None = None
     """m: standard deviation of a contact endcap's body-frame position from the shape,
-    per axis (the forward-kinematics measurement noise of eq. 12): the shape's node
-    error on the 1.45 m robot rolling is about that (tests/test_shape.py); 2 cm made
-    the filter trust a wrong shape and drift 10 % instead of 4 % on the forward gait."""
+    per axis (the forward-kinematics measurement noise of eq. 12); None: 0.08 m on the
+    1.45 m rods, about the shape's node error there rolling (tests/test_shape.py); 2 cm
+    made the filter trust a wrong shape and drift 10 % instead of 4 % on the forward
+    gait."""
     gate_probability: float = 0.9999
     """Chi-square gate on each contact correction: innovations less likely are refused."""
-    slip_per_rate: float = 0.05
+    slip_per_rate: float | None = None
     """m/s/sqrt(Hz) per rad/s: the contacts' slip density grows by this times the base
-    rod's angular rate. The endcaps slide most while the robot tips over a face (1 kHz
-    truth: a third of the contact time faster than 5 cm/s), and barely while it rests
-    on one; a constant density either trusts the sliding contacts or loosens the still
-    ones. On the bench (seeds 0-2): 9.5 % -> 6.9 % mean drift; 0.04 7.1 %, 0.07 7.0 %,
-    and no growth below 1 rad/s 8.8 % (the left turn rocks slowly and slides)."""
-    slip_max: float = 0.05
-    """m/s/sqrt(Hz): the most the rate makes of the slip density (papers/002's constant).
-    A robot shaken by random actions turns fast all the time, and an unbounded density
-    let its pose coast on the IMU: on ThreeBarRoll-v0, 300 random steps (seeds
-    1000-1002), the CoM 0.9 and 2.3 m off at the end on two seeds against 0.25 and 0.17
-    with a constant 0.02; capped at 0.05 0.39 and 0.78 m (0.03: 0.30 and 0.36 m). On the
-    1.45 m robot's bench the cap helps too: 6.9 % -> 6.1 % mean drift (0.03: 7.3 %)."""
+    rod's angular rate (None: 0.05 on the 1.45 m rods: an endcap slides at the rate
+    times a lever of the robot's size). The endcaps slide most while the robot tips
+    over a face (1 kHz truth: a third of the contact time faster than 5 cm/s), and
+    barely while it rests on one; a constant density either trusts the sliding contacts
+    or loosens the still ones. On the bench (seeds 0-2): 9.5 % -> 6.9 % mean drift;
+    0.04 7.1 %, 0.07 7.0 %, and no growth below 1 rad/s 8.8 % (the left turn rocks
+    slowly and slides)."""
+    slip_max: float | None = None
+    """m/s/sqrt(Hz): the most the rate makes of the slip density (None: papers/002's
+    constant 0.05 on its 1.45 m rods). A robot shaken by random actions turns fast all
+    the time, and an unbounded density let its pose coast on the IMU: on
+    ThreeBarRoll-v0, 300 random steps (seeds 1000-1002), the CoM 0.9 and 2.3 m off at
+    the end on two seeds against 0.25 and 0.17 with a constant 0.02; capped at 0.05
+    0.39 and 0.78 m (0.03: 0.30 and 0.36 m). On the 1.45 m robot's bench the cap helps
+    too: 6.9 % -> 6.1 % mean drift (0.03: 7.3 %). Scaled to the 0.325 m rods of
+    ThreeBarRoll-v0 with the three lengths above, a PPO policy's 16 episodes (seeds
+    1000-1015) had the CoM 0.18 m off on average instead of 0.53 m."""
     reanchor_slipped: bool = True
     """A contact the gate refuses has slipped: it touches down again where the shape and
     the pose put it. On the bench (agents.bench_proprio, seeds 0 and 1) the mean drift
@@ -125,6 +149,23 @@ class InekfConfig:
     filter restarts): one that has drifted off would otherwise refuse them ever after."""
     health: HealthParams = field(default_factory=lambda: HealthParams(max_prediction_time=0.5))
 
+    def for_robot(self, description: RobotDescription) -> InekfConfig:
+        """This config with every length left None set in proportion to the base rod:
+        papers/002's value on its 1.45 m rods times the rod's length over 1.45 m."""
+        scale = float(description.rods[self.base_rod].length) / PAPER_ROD_LENGTH
+
+        def length(name: str) -> float:
+            value: float | None = getattr(self, name)
+            return PAPER_LENGTHS[name] * scale if value is None else value
+
+        return replace(
+            self,
+            contact_std=length("contact_std"),
+            kinematics_std=length("kinematics_std"),
+            slip_per_rate=length("slip_per_rate"),
+            slip_max=length("slip_max"),
+        )
+
     def __post_init__(self) -> None:
         if self.contacts not in CONTACT_SOURCES:
             raise ValueError(
@@ -133,8 +174,14 @@ class InekfConfig:
             )
         if isinstance(self.base_rod, bool) or not isinstance(self.base_rod, int):
             raise ValueError(f"InekfConfig.base_rod must be a rod index, got {self.base_rod!r}")
+        for name in ("contact_std", "kinematics_std"):
+            value = getattr(self, name)
+            if value is not None and not (
+                isinstance(value, (int, float)) and math.isfinite(value) and value > 0
+            ):
+                raise ValueError(f"InekfConfig.{name} must be a number > 0 or None, got {value!r}")
         for name in (
-            "shape_rate", "contact_std", "kinematics_std", "initial_rotation_std",
+            "shape_rate", "initial_rotation_std",
             "initial_yaw_std", "initial_position_std", "initial_velocity_std",
             "initial_gyro_bias_std", "initial_accel_bias_std", "rest_gyro", "max_speed",
             "max_refused_time",
@@ -144,8 +191,8 @@ class InekfConfig:
                 raise ValueError(f"InekfConfig.{name} must be a number > 0, got {value!r}")
         for name in ("slip_per_rate", "slip_max"):
             k = getattr(self, name)
-            if not (isinstance(k, (int, float)) and math.isfinite(k) and k >= 0):
-                raise ValueError(f"InekfConfig.{name} must be a number >= 0, got {k!r}")
+            if k is not None and not (isinstance(k, (int, float)) and math.isfinite(k) and k >= 0):
+                raise ValueError(f"InekfConfig.{name} must be a number >= 0 or None, got {k!r}")
         for name in ("reanchor_slipped", "rolling_endcaps"):
             flag = getattr(self, name)
             if not isinstance(flag, bool):

@@ -90,7 +90,10 @@ class InekfEstimator:
     needs_camera = False
 
     def __init__(self, config: InekfConfig | None = None) -> None:
-        self.config = config or InekfConfig()
+        self.requested = config or InekfConfig()
+        """The config as given; :attr:`config` is it set for the robot at reset
+        (:meth:`InekfConfig.for_robot`)."""
+        self.config = self.requested
         self.filter: RightInvariantEkf | None = None
         self.health = EstimatorHealth(self.config.health)
         self._rejected: dict[str, int] = {}
@@ -121,9 +124,13 @@ class InekfEstimator:
         command: NDArray[np.float64],
         rng: np.random.Generator,
     ) -> Estimate:
-        c, d = self.config, description
-        if not 0 <= c.base_rod < d.n_rods:
-            raise ValueError(f"InekfConfig.base_rod {c.base_rod} is not a rod of {d.name!r}")
+        d = description
+        if not 0 <= self.requested.base_rod < d.n_rods:
+            raise ValueError(
+                f"InekfConfig.base_rod {self.requested.base_rod} is not a rod of {d.name!r}"
+            )
+        c = self.config = self.requested.for_robot(d)
+        assert c.contact_std is not None and c.kinematics_std is not None  # set for the robot
         self.description = d
         self._rejected = {}
         bounds = PlausibilityBounds.from_robot(d, calibration)
@@ -137,13 +144,15 @@ class InekfEstimator:
         self._gate = float(chi2.ppf(c.gate_probability, 3))
         self._full_scale = float(d.sensors.imu.accel_full_scale)
         self._clip = CLIPPED * self._full_scale
+        self._gyro_full_scale = float(d.sensors.imu.gyro_full_scale)
+        self._gyro_clip = CLIPPED * self._gyro_full_scale
         self._base_nodes = frozenset(int(n) for n in d.rod_nodes[c.base_rod])
         self._base_endcap_radius = float(d.rods[c.base_rod].endcap_radius)
         self._cov_touch = np.eye(3) * c.contact_std**2
         # (k, 3, 3) forward-kinematics covariances for k contacts, made once
         self._cov_kinematics = [np.repeat(np.eye(3)[None] * c.kinematics_std**2, k, axis=0)
                                 for k in range(d.n_nodes + 1)]  # fmt: skip
-        self._clipped = False
+        self._clipped = self._gyro_clipped = False
         self._rest = np.asarray(command, dtype=np.float64).copy()
         self._cables: NDArray[np.float64] | None = None
         self._sensed: NDArray[np.bool_] | None = None
@@ -202,6 +211,7 @@ class InekfEstimator:
         p = initial_position(d, R, self.shape)
         noise = c.noise if c.noise is not None else noise_from_description(d)
         slip = noise.contact_velocity
+        assert c.slip_per_rate is not None and c.slip_max is not None  # set for the robot
         self._slip_law = np.array([slip, c.slip_per_rate, max(c.slip_max, slip)])
         self._rolled_for: tuple[int, ...] | None = None
         self._roll_radii = np.zeros(0)
@@ -282,6 +292,7 @@ class InekfEstimator:
                 np.ascontiguousarray(s.accel, dtype=np.float64) if accel is None else accel
             )
             self._clipped = bool(np.abs(self._accel).max() >= self._clip)
+            self._gyro_clipped = bool(np.abs(self._gyro).max() >= self._gyro_clip)
             self._t_ns = max(self._t_ns, t_ns)
             self._rest_phase(self._gyro)
 
@@ -305,7 +316,10 @@ class InekfEstimator:
                 [self._base_endcap_radius if n in self._base_nodes else 0.0 for n in nodes]
             ) if self.config.rolling_endcaps else np.zeros(len(nodes))  # fmt: skip
         variance = (self._full_scale * dt) ** 2 if self._clipped else 0.0
-        f.propagate_reading(self._gyro, self._accel, dt, self._slip_law, variance, self._roll_radii)
+        turn = (self._gyro_full_scale * dt) ** 2 if self._gyro_clipped else 0.0
+        f.propagate_reading(
+            self._gyro, self._accel, dt, self._slip_law, variance, self._roll_radii, turn
+        )
 
     def _rest_phase(self, gyro: NDArray[np.float64]) -> None:
         """While the robot rests after reset, the gyro's mean is its bias."""

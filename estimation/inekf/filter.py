@@ -300,10 +300,12 @@ def _propagate_reading(
     slip: NDArray[np.float64],
     velocity_variance: float,
     roll_radii: NDArray[np.float64],
+    rotation_variance: float,
 ) -> None:
     """:func:`_propagate` with what an estimator adds per reading, in one call: the slip
     variance q[2] from the angular rate (slip: density at rest, growth per rad/s, cap;
-    no growth keeps q[2]), ``velocity_variance`` on the velocity, and each contact's
+    no growth keeps q[2]), ``velocity_variance`` on the velocity and
+    ``rotation_variance`` on the rotation, and each contact's
     point rolled by ``roll_radii[k]`` m times the turn about body z over dt, along the
     ground: d_k += (R e_z) (turn r_k) x e_z, with R after the step."""
     if slip[1] > 0.0:
@@ -311,8 +313,9 @@ def _propagate_reading(
         density = min(slip[0] + slip[1] * math.sqrt(w0 * w0 + w1 * w1 + w2 * w2), slip[2])
         q[2] = density * density
     _propagate(T, b, P, gyro, accel, dt, g, q)
-    for i in range(3, 6):
-        P[i, i] += velocity_variance
+    for i in range(3):
+        P[i, i] += rotation_variance
+        P[3 + i, 3 + i] += velocity_variance
     spin = (gyro[2] - b[2]) * dt
     for k in range(roll_radii.shape[0]):
         if roll_radii[k] != 0.0:
@@ -716,6 +719,7 @@ class RightInvariantEkf:
         slip: NDArray[np.float64],
         velocity_variance: float,
         roll_radii: NDArray[np.float64],
+        rotation_variance: float = 0.0,
     ) -> None:
         """:meth:`propagate` with an estimator's per-reading additions, in one compiled
         call (the estimator's hot path: arrays are taken as they are, float64).
@@ -731,6 +735,8 @@ class RightInvariantEkf:
             roll_radii: (K,) m, per contact in state order: an endcap of that radius
                 rolling with the body's turn about its z axis (0: not rolling); its point
                 moves by (R e_z) (turn r) x e_z (:meth:`move_contact`).
+            rotation_variance: rad^2 per axis added to the rotation's error after the
+                step (a turn the gyro did not measure: a reading at its full scale).
         """
         if not (dt > 0.0 and math.isfinite(dt)):
             raise ValueError(f"dt must be a finite number of seconds > 0, got {dt!r}")
@@ -738,13 +744,12 @@ class RightInvariantEkf:
             raise ValueError(
                 f"roll_radii must have shape ({len(self._nodes)},), got {roll_radii.shape}"
             )
-        if not (velocity_variance >= 0.0 and math.isfinite(velocity_variance)):
-            raise ValueError(
-                f"velocity_variance must be finite and >= 0, got {velocity_variance!r}"
-            )
+        for variance in (velocity_variance, rotation_variance):
+            if not (variance >= 0.0 and math.isfinite(variance)):
+                raise ValueError(f"a variance must be finite and >= 0, got {variance!r}")
         _propagate_reading(
             self._T, self._b, self._P, gyro, accel, float(dt), self.gravity, self._q, slip,
-            float(velocity_variance), roll_radii,
+            float(velocity_variance), roll_radii, float(rotation_variance),
         )  # fmt: skip
 
     def augment(self, node: int, p_body: ArrayLike, cov_body: ArrayLike) -> None:
