@@ -118,7 +118,8 @@ class InekfConfig:
     0.39 and 0.78 m (0.03: 0.30 and 0.36 m). On the 1.45 m robot's bench the cap helps
     too: 6.9 % -> 6.1 % mean drift (0.03: 7.3 %). Scaled to the 0.325 m rods of
     ThreeBarRoll-v0 with the three lengths above, a PPO policy's 16 episodes (seeds
-    1000-1015) had the CoM 0.18 m off on average instead of 0.53 m."""
+    1000-1015, ``evaluate --conditions inekf``) had the CoM 0.23 m off on average
+    instead of 0.53 m."""
     reanchor_slipped: bool = True
     """A contact the gate refuses has slipped: it touches down again where the shape and
     the pose put it. On the bench (agents.bench_proprio, seeds 0 and 1) the mean drift
