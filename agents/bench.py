@@ -10,7 +10,7 @@ import os
 import platform
 from typing import TYPE_CHECKING, Any
 
-from agents.bench_env import bench_env_speed, bench_memory
+from agents.bench_env import bench_env_speed, bench_env_speed_ratio, bench_memory
 from agents.cluster import executor
 
 if TYPE_CHECKING:
@@ -27,17 +27,13 @@ def _bench_proprioceptive(speed_steps: int) -> dict[str, Any]:
     from agents.bench_shape import bench_shape
 
     large = "tensegrity_gym/ThreeBarLargeRoll-v0"
-    steps = max(speed_steps // 4, 100)
-    oracle = bench_env_speed(large, steps)
-    inekf = bench_env_speed(large, steps, estimator="inekf")
+    speed = bench_env_speed_ratio(large, "inekf", steps=max(speed_steps // 7, 100))
     return {
         "table": bench_proprioceptive(),
         "filter_us": bench_inekf(),
         "shape_us": bench_shape(),
-        "speed": [oracle, inekf],
-        "inekf_over_oracle_env_speed": round(
-            inekf["env_steps_per_s"] / oracle["env_steps_per_s"], 3
-        ),
+        "speed": speed,
+        "inekf_over_oracle_env_speed": speed["ratio"],
         "targets": {
             "propagate_us": 20,
             "correct_us (3 contacts)": 40,

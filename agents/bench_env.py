@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.envs.roll_env import TensegrityEnv
     from tensegrity_gym.sim.backend import SimBackend
 
-__all__ = ["bench_env_speed", "bench_memory", "rss_mb"]
+__all__ = ["bench_env_speed", "bench_env_speed_ratio", "bench_memory", "rss_mb"]
 
 
 def rss_mb(pid: int | str = "self") -> float:
@@ -67,6 +67,50 @@ def bench_env_speed(
         "env_steps_per_s": round(rate, 1),
         "bare_physics_env_steps_per_s": round(bare, 1),
         "fraction_of_ceiling": round(rate / bare, 3),
+    }
+
+
+def bench_env_speed_ratio(
+    env_id: str,
+    estimator: str,
+    steps: int = 300,
+    repeats: int = 6,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The env's speed with ``estimator`` over its speed with the oracle, on a shared
+    machine: ``repeats`` runs of each, alternated, over the same ``steps`` uniformly
+    random actions from ``reset(seed)`` (the first 10 not timed), in process time; the
+    least time of each is its cost (other processes only ever add to it).
+
+    Returns ms per step (least and median) for both and ``ratio`` = oracle's least over
+    ``estimator``'s least (1: as fast as the oracle)."""
+    envs = {name: gym.make(env_id, estimator=name) for name in ("oracle", estimator)}
+    shape = envs["oracle"].action_space.shape or ()
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, *shape)).astype(np.float32)
+    times: dict[str, list[float]] = {name: [] for name in envs}
+    for _ in range(repeats):
+        for name, env in envs.items():
+            env.reset(seed=seed)
+            for a in actions[:10]:
+                env.step(a)
+            t = time.process_time()
+            for a in actions[10:]:
+                _, _, terminated, truncated, _ = env.step(a)
+                if terminated or truncated:
+                    env.reset()
+            times[name].append(1e3 * (time.process_time() - t) / max(steps - 10, 1))
+    for env in envs.values():
+        env.close()
+    least = {name: min(t) for name, t in times.items()}
+    return {
+        "env": env_id,
+        "steps": steps,
+        "repeats": repeats,
+        **{f"{name}_ms_per_step": round(least[name], 3) for name in envs},
+        **{
+            f"{name}_ms_per_step_median": round(float(np.median(t)), 3) for name, t in times.items()
+        },
+        "ratio": round(least["oracle"] / least[estimator], 3),
     }
 
 

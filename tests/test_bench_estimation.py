@@ -65,3 +65,13 @@ def test_stationary_actuation_moves_two_cables_and_not_the_robot() -> None:
     start, end = run.start.truth, run.steps[-1].truth
     assert start is not None and end is not None
     assert np.linalg.norm(end.com[:2] - start.com[:2]) < 0.2  # metres: it stays put
+
+
+def test_the_speed_ratio_alternates_and_takes_the_least_of_each() -> None:
+    from agents.bench_env import bench_env_speed_ratio
+
+    r = bench_env_speed_ratio("tensegrity_gym/ThreeBarRoll-v0", "inekf", steps=30, repeats=2)
+    assert r["repeats"] == 2 and r["steps"] == 30
+    for name in ("oracle", "inekf"):
+        assert 0.0 < r[f"{name}_ms_per_step"] <= r[f"{name}_ms_per_step_median"]
+    assert r["ratio"] == pytest.approx(r["oracle_ms_per_step"] / r["inekf_ms_per_step"], abs=2e-3)
