@@ -396,11 +396,13 @@ def _add_ray(parser: argparse.ArgumentParser, what: str) -> None:
 
 def _add_training(sub: Any, env_help: str) -> None:
     """demo, train, evaluate and gait."""
-    from agents.evaluate import CONDITIONS, condition_names
-    from agents.train import ALGORITHMS
-    from tensegrity_gym.model.randomization import RANDOMIZATIONS
-    from tensegrity_gym.model.registry import ESTIMATORS
+    _add_demo(sub)
+    _add_train(sub, env_help)
+    _add_evaluate(sub)
+    _add_gait(sub, env_help)
 
+
+def _add_demo(sub: Any) -> None:
     demo = sub.add_parser(
         "demo",
         help="the main job: train PPO with the UKF in the loop (and on ground truth), "
@@ -431,6 +433,12 @@ def _add_training(sub: Any, env_help: str) -> None:
     demo.add_argument("--no-progress", action="store_true", help="no progress bars")
     demo.set_defaults(func=_demo)
 
+
+def _add_train(sub: Any, env_help: str) -> None:
+    from agents.train import ALGORITHMS
+    from tensegrity_gym.model.randomization import RANDOMIZATIONS
+    from tensegrity_gym.model.registry import ESTIMATORS
+
     tr = sub.add_parser("train", help="train a policy with stable-baselines3")
     tr.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
     tr.add_argument("--algo", default="ppo", choices=list(ALGORITHMS), help="algorithm")
@@ -459,6 +467,10 @@ def _add_training(sub: Any, env_help: str) -> None:
                     "cluster, at most --n-envs); with --ray only")  # fmt: skip
     tr.set_defaults(func=_train)
 
+
+def _add_evaluate(sub: Any) -> None:
+    from agents.evaluate import CONDITIONS, condition_names
+
     ev = sub.add_parser(
         "evaluate", help="evaluate trained policies under each estimator; write the report"
     )
@@ -475,6 +487,10 @@ def _add_training(sub: Any, env_help: str) -> None:
     ev.add_argument("--out", required=True, help="folder for the report")
     _add_ray(ev, "run each episode as a Ray task")
     ev.set_defaults(func=_evaluate)
+
+
+def _add_gait(sub: Any, env_help: str) -> None:
+    from tensegrity_gym.model.registry import ESTIMATORS
 
     gait = sub.add_parser("gait", help="roll a robot with its scripted gait; plot the CoM")
     gait.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
