@@ -235,9 +235,12 @@ def test_a_reset_rests_until_the_estimator_can_start() -> None:
         calls.append(len(samples))
         return "a stand-in lack" if len(calls) < 3 else None
 
-    first = backend.reset(np.random.default_rng(0)).samples
-    waited = backend.reset(np.random.default_rng(0), ready=ready).samples
+    plain, waiting = np.random.default_rng(0), np.random.default_rng(0)
+    first = backend.reset(plain).samples
+    waited = backend.reset(waiting, ready=ready).samples
     assert calls[0] == len(first) and len(calls) == 3 and calls[2] > calls[1] > calls[0]
+    # The wait draws from a child generator: the episode's own stream is where it was.
+    assert waiting.bit_generator.state == plain.bit_generator.state
     assert max(s.t for s in waited) == pytest.approx(2 * backend.control_period)
     calls.clear()
     backend.reset(np.random.default_rng(0), ready=lambda samples: calls.append(0) or "never")

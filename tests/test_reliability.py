@@ -6,6 +6,7 @@ from a dead episode, the motors stopped, Gymnasium's checker re-armed)."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
@@ -122,6 +123,9 @@ def test_a_step_beyond_what_the_robot_can_travel_earns_no_reward() -> None:
         assert reason is not None and "cannot travel" in reason
         assert task.reward(start, _estimate(far), a) == 0.0
     assert task.implausible_step(start, _estimate([math.nan, 0.0, 0.1])) is not None
+    # A restarted estimator's jump, however short, is not the robot's motion.
+    restarted = dataclasses.replace(_estimate([0.05, 0.0, 0.1]), reinitialised=True)
+    assert "started again" in (task.implausible_step(start, restarted) or "")
 
 
 class _JumpingEstimator:

@@ -1296,10 +1296,14 @@ class ShapeReconstructor:
         self, target: NDArray[np.float64], w: NDArray[np.float64], start: NDArray[np.float64]
     ) -> str | None:
         """Why no shape can be solved for, before trying; None if one may be."""
-        # a sum is finite only if every term is: one test for the common case
-        if not (math.isfinite(float(target.sum() + w.sum())) and float(w.min()) >= 0.0):
+        # a sum is finite if every term is (one test for the common case); one that is
+        # not may still have only finite terms, too large to add
+        finite = math.isfinite(float(target.sum() + w.sum())) or bool(
+            np.all(np.isfinite(target)) and np.all(np.isfinite(w))
+        )
+        if not (finite and float(w.min()) >= 0.0):
             return "distances or weights not finite, or a weight negative"
-        if not math.isfinite(float(start.sum())):
+        if not (math.isfinite(float(start.sum())) or bool(np.all(np.isfinite(start)))):
             return "warm start not finite"
         used = w > 0.0
         margin = self._margin(w)

@@ -460,6 +460,7 @@ class UkfEstimator:
             self._start(nodes)
             self.health.reinitialised(placed=False)
             return self._estimate()
+        self._unplaced = False
         self._start(nodes)
         self.health.reinitialised(placed=True)  # placed by the samples just now
         return self._estimate()

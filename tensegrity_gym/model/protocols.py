@@ -114,8 +114,9 @@ class Backend(Protocol):
         """Start an episode; return the samples of the settling period.
 
         ``ready(samples)`` says what the estimator still lacks to initialise from
-        ``samples`` (None: nothing). A backend that can wait for more (a robot) waits,
-        within its timeout, until it returns None, and raises naming what is missing.
+        ``samples`` (None: nothing). A backend that can wait for more waits, within its
+        timeout, until it returns None; then a robot raises naming what is missing, and
+        the simulator hands over what it has (the estimator starts as it can).
         """
         ...
 

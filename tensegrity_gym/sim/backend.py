@@ -185,6 +185,15 @@ def _sensor_rates(description: RobotDescription) -> dict[str, float]:
     }
 
 
+def _child(rng: np.random.Generator) -> np.random.Generator:
+    """An independent generator spawned from ``rng`` without drawing from it; one
+    seeded from a draw where ``rng`` has no seed sequence to spawn from."""
+    try:
+        return rng.spawn(1)[0]
+    except (TypeError, ValueError, AttributeError):
+        return np.random.default_rng(rng.integers(2**63))
+
+
 def check_sensor_rates(description: RobotDescription, time_step: float) -> None:
     """Refuse a sensor faster than the physics: its samples would share stamps (and a
     bag or the link would drop them as duplicates)."""
@@ -494,19 +503,33 @@ class SimBackend:
 
     def _until_ready(self, samples: list[Sample], ready: ReadyCheck) -> list[Sample]:
         """``samples`` and those of further periods at rest while ``ready`` names
-        something missing, for at most :data:`READY_WAIT` s."""
+        something missing, for at most :data:`READY_WAIT` s.
+
+        The wait's sensors draw from a child of the episode's generator (spawning one
+        leaves the parent's stream as it was), so that what the episode draws after
+        reset (its goal, its sensors' noise) is the same whether this estimator waited
+        or another did not."""
         d = self.description
         hold = d.rest_lengths[d.actuated]
-        for period in range(math.ceil(READY_WAIT / self.control_period)):
-            missing = ready(samples)
-            if missing is None:
-                return samples
-            if period == 0:
-                log.info("reset: resting while the estimator lacks %s", missing)
-            result = self.step(hold)
-            if result.diverged:
-                break
-            samples = [*samples, *result.samples]
+        episode_rng = self._rng
+        assert episode_rng is not None
+        try:
+            for period in range(math.ceil(READY_WAIT / self.control_period)):
+                missing = ready(samples)
+                if missing is None:
+                    return samples
+                if period == 0:
+                    log.info("reset: resting while the estimator lacks %s", missing)
+                    self._rng = _child(episode_rng)
+                result = self.step(hold)
+                if result.diverged:
+                    raise SettleError(
+                        "the simulation diverged while the robot rested at reset, waiting "
+                        f"for what the estimator lacks ({missing})"
+                    )
+                samples = [*samples, *result.samples]
+        finally:
+            self._rng = episode_rng
         return samples
 
     def _episode_info(self) -> dict[str, object]:

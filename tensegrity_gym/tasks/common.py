@@ -148,7 +148,11 @@ class GoalFrameTask:
 
     def implausible_step(self, previous: Estimate, estimate: Estimate) -> str | None:
         """Why the step from ``previous`` to ``estimate`` earns no reward at all (it is
-        farther than the robot can travel in a period, or not finite), else None."""
+        farther than the robot can travel in a period, or not finite, or the estimator
+        started again: the jump to where it now places the robot is no motion), else
+        None."""
+        if estimate.reinitialised:
+            return "the estimator started again; its jump is not the robot's motion"
         with np.errstate(invalid="ignore", over="ignore"):
             moved = float(np.linalg.norm(estimate.com[:2] - previous.com[:2]))
         if not np.isfinite(moved):
