@@ -43,6 +43,53 @@ def _bench_proprioceptive(speed_steps: int) -> dict[str, Any]:
     }
 
 
+def _bench_estimators(speed_steps: int, jobs: Executor) -> dict[str, Any]:
+    """The filters' speed, the estimation study (its jobs on ``jobs``), the ICP tracker,
+    papers/002's estimator and UWB calibration."""
+    from agents.bench_calibration import bench_calibration
+    from agents.bench_calibration_loop import bench_calibration_in_loop
+    from agents.bench_estimation import bench_estimation, bench_filter_speed
+    from agents.bench_icp import bench_icp
+
+    return {
+        "filter_speed": [
+            bench_filter_speed("tensegrity_gym/ThreeBarRoll-v0"),
+            bench_filter_speed("tensegrity_gym/SuperBallRoll-v0"),
+        ],
+        "filter_speed_targets": {
+            "three_bar fast_filter_step_ms_median": 2.0,
+            "superball fast_filter_step_ms_median": 5.0,
+            "speedup_vs_filterpy_numpy_model": 50,
+        },
+        "estimation": bench_estimation(executor=jobs),
+        "icp": bench_icp(),
+        "proprioceptive": _bench_proprioceptive(speed_steps),
+        "uwb_calibration": {
+            "calibrator": bench_calibration(),
+            "ukf_estimated_against_true": bench_calibration_in_loop(),
+        },
+    }
+
+
+def _bench_link(link_steps: int, soak_minutes: float) -> dict[str, Any]:
+    """The robot link against the emulator: latency and throughput over ``link_steps``
+    periods, and a soak of ``soak_minutes``."""
+    from agents.bench_link import bench_latency, bench_soak, bench_throughput
+
+    link: dict[str, Any] = {}
+    if link_steps > 0:
+        link["latency"] = bench_latency(link_steps)
+        link["throughput"] = bench_throughput(max(link_steps * 2 // 3, 50))
+    if soak_minutes > 0:
+        link["soak"] = bench_soak(soak_minutes)
+    link["targets"] = {
+        "driver_added_latency_ms median and p99": 5.0,
+        "throughput dropped_on_driver_side": 0,
+        "soak growth": "none in memory or latency",
+    }
+    return link
+
+
 def run_benchmarks(
     speed_steps: int = 2000,
     memory_steps: int = 100_000,
@@ -106,29 +153,7 @@ def _run(
         },
     }
     if estimation:
-        from agents.bench_estimation import bench_estimation, bench_filter_speed
-
-        results["filter_speed"] = [
-            bench_filter_speed("tensegrity_gym/ThreeBarRoll-v0"),
-            bench_filter_speed("tensegrity_gym/SuperBallRoll-v0"),
-        ]
-        results["filter_speed_targets"] = {
-            "three_bar fast_filter_step_ms_median": 2.0,
-            "superball fast_filter_step_ms_median": 5.0,
-            "speedup_vs_filterpy_numpy_model": 50,
-        }
-        results["estimation"] = bench_estimation(executor=jobs)
-        from agents.bench_icp import bench_icp
-
-        results["icp"] = bench_icp()
-        results["proprioceptive"] = _bench_proprioceptive(speed_steps)
-        from agents.bench_calibration import bench_calibration
-        from agents.bench_calibration_loop import bench_calibration_in_loop
-
-        results["uwb_calibration"] = {
-            "calibrator": bench_calibration(),
-            "ukf_estimated_against_true": bench_calibration_in_loop(),
-        }
+        results.update(_bench_estimators(speed_steps, jobs))
     if sim2real:
         from agents.bench_sim2real import bench_identify, bench_randomized_ukf
 
@@ -139,20 +164,7 @@ def _run(
 
         results["bags"] = bench_bags(minutes=bag_minutes)
     if link_steps > 0 or soak_minutes > 0:
-        from agents.bench_link import bench_latency, bench_soak, bench_throughput
-
-        link: dict[str, Any] = {}
-        if link_steps > 0:
-            link["latency"] = bench_latency(link_steps)
-            link["throughput"] = bench_throughput(max(link_steps * 2 // 3, 50))
-        if soak_minutes > 0:
-            link["soak"] = bench_soak(soak_minutes)
-        link["targets"] = {
-            "driver_added_latency_ms median and p99": 5.0,
-            "throughput dropped_on_driver_side": 0,
-            "soak growth": "none in memory or latency",
-        }
-        results["link"] = link
+        results["link"] = _bench_link(link_steps, soak_minutes)
     if memory_steps > 0:
         results["memory"] = bench_memory("tensegrity_gym/ThreeBarRoll-v0", memory_steps)
     return results

@@ -15,6 +15,10 @@ import numpy as np
 import tensegrity_gym  # noqa: F401  (registers the envs)
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from numpy.typing import NDArray
+
     from tensegrity_gym.envs.roll_env import TensegrityEnv
     from tensegrity_gym.sim.backend import SimBackend
 
@@ -38,6 +42,17 @@ def _bare_physics_rate(env: Any, steps: int) -> float:
     return steps / (time.perf_counter() - t)
 
 
+def _timed_steps(env: Any, actions: NDArray[np.float32], clock: Callable[[], float]) -> float:
+    """Seconds by ``clock`` to step ``env`` through ``actions``, resetting where an
+    episode ends."""
+    t = clock()
+    for a in actions:
+        _, _, terminated, truncated, _ = env.step(a)
+        if terminated or truncated:
+            env.reset()
+    return clock() - t
+
+
 def bench_env_speed(
     env_id: str, steps: int, estimator: str = "oracle", seed: int = 0
 ) -> dict[str, Any]:
@@ -49,12 +64,7 @@ def bench_env_speed(
     actions = rng.uniform(-1.0, 1.0, (steps, *shape)).astype(np.float32)
     for a in actions[:20]:  # warm-up: caches, first allocations
         env.step(a)
-    t = time.perf_counter()
-    for a in actions:
-        _, _, terminated, truncated, _ = env.step(a)
-        if terminated or truncated:
-            env.reset()
-    rate = steps / (time.perf_counter() - t)
+    rate = steps / _timed_steps(env, actions, time.perf_counter)
     backend = cast("SimBackend", cast("TensegrityEnv", env.unwrapped).backend)
     physics_per_env_step = round(backend.control_period / backend.time_step)
     env.reset(seed=seed)
@@ -93,12 +103,8 @@ def bench_env_speed_ratio(
             env.reset(seed=seed)
             for a in actions[:10]:
                 env.step(a)
-            t = time.process_time()
-            for a in actions[10:]:
-                _, _, terminated, truncated, _ = env.step(a)
-                if terminated or truncated:
-                    env.reset()
-            times[name].append(1e3 * (time.process_time() - t) / max(steps - 10, 1))
+            seconds = _timed_steps(env, actions[10:], time.process_time)
+            times[name].append(1e3 * seconds / max(steps - 10, 1))
     for env in envs.values():
         env.close()
     least = {name: min(t) for name, t in times.items()}

@@ -119,8 +119,9 @@ class InekfConfig:
     too: 6.9 % -> 6.1 % mean drift (0.03: 7.3 %). Scaled to the 0.325 m rods of
     ThreeBarRoll-v0 with the three lengths above, a PPO policy's 16 episodes (seeds
     1000-1015, ``evaluate --conditions inekf``) had the CoM 0.23 m off on average
-    instead of 0.53 m, and the 300 random steps above ended 0.11, 0.17 and 0.08 m off
-    (with the saturated gyro's rotation variance too)."""
+    instead of 0.53 m (unscaled, one-off script), and the 300 random steps above ended
+    0.11, 0.17 and 0.08 m off (one-off script; with the saturated gyro's rotation
+    variance too)."""
     reanchor_slipped: bool = True
     """A contact the gate refuses has slipped: it touches down again where the shape and
     the pose put it. On the bench (agents.bench_proprio, seeds 0 and 1) the mean drift

@@ -50,6 +50,8 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
+from tensegrity_gym.model.checks import all_finite
+
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
@@ -835,13 +837,7 @@ class RightInvariantEkf:
 
     def is_finite(self) -> bool:
         """True if the state and the covariance are free of NaN and inf."""
-        total = float(self._T.sum()) + float(self._b.sum()) + float(self._P.sum())
-        if math.isfinite(total):  # a sum is finite only if every term is
-            return True
-        return bool(
-            np.all(np.isfinite(self._T)) and np.all(np.isfinite(self._b))
-            and np.all(np.isfinite(self._P))
-        )  # fmt: skip
+        return all_finite(self._T, self._b, self._P)
 
     @property
     def rotation(self) -> NDArray[np.float64]:

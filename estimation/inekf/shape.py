@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING
 import numba
 import numpy as np
 
-from tensegrity_gym.model.checks import check_number, check_optional_number
+from tensegrity_gym.model.checks import all_finite, check_number, check_optional_number
 from tensegrity_gym.model.kinematics import member_lengths, rod_quaternion_from_axis
 from tensegrity_gym.model.lie import quat_to_matrix
 
@@ -1233,22 +1233,24 @@ class ShapeReconstructor:
         if start.shape != (n, 3):
             raise ValueError(f"warm must be ({n}, 3), got {start.shape}")
         tilt = self._tilts(rod_up, up)
-        why = self._implausible(target, w, start)
+        margin = self._margin(w)
+        why = self._implausible(target, w, start, margin)
         if why is not None:
             return self._failed(why, 0)
         if contacts is not None:
             mask = np.asarray(contacts, dtype=bool)
             if mask.shape != (n,):
                 raise ValueError(f"contacts must be ({n},) bool, got {mask.shape}")
-            return self._solve_from(start, target, w, up, mask, tilt)
+            return self._solve_from(start, target, w, margin, up, mask, tilt)
         mask = self._lowest(start, up)
-        solution = self._solve_from(start, target, w, up, mask, tilt)
+        solution = self._solve_from(start, target, w, margin, up, mask, tilt)
         if not solution.converged or up is None:
             return solution
         lowest = self._lowest(solution.positions, up)
         if np.array_equal(lowest, mask):
             return solution
-        again = self._solve_from(solution.positions, target, w, up, lowest, tilt)  # its own feet
+        # its own feet
+        again = self._solve_from(solution.positions, target, w, margin, up, lowest, tilt)
         return again if again.converged else solution
 
     def _margin(self, w: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -1293,20 +1295,19 @@ class ShapeReconstructor:
         return up / norm
 
     def _implausible(
-        self, target: NDArray[np.float64], w: NDArray[np.float64], start: NDArray[np.float64]
+        self,
+        target: NDArray[np.float64],
+        w: NDArray[np.float64],
+        start: NDArray[np.float64],
+        margin: NDArray[np.float64],
     ) -> str | None:
-        """Why no shape can be solved for, before trying; None if one may be."""
-        # a sum is finite if every term is (one test for the common case); one that is
-        # not may still have only finite terms, too large to add
-        finite = math.isfinite(float(target.sum() + w.sum())) or bool(
-            np.all(np.isfinite(target)) and np.all(np.isfinite(w))
-        )
-        if not (finite and float(w.min()) >= 0.0):
+        """Why no shape can be solved for, before trying; None if one may be. ``margin``:
+        :meth:`_margin` of ``w``."""
+        if not (all_finite(target, w) and float(w.min()) >= 0.0):
             return "distances or weights not finite, or a weight negative"
-        if not (math.isfinite(float(start.sum())) or bool(np.all(np.isfinite(start)))):
+        if not all_finite(start):
             return "warm start not finite"
         used = w > 0.0
-        margin = self._margin(w)
         d = self.description
         cable, bound = _triangle_violation(
             d.n_nodes, self._rod_nodes64, self._rod_lengths, self._cable_nodes64, target,
@@ -1337,13 +1338,14 @@ class ShapeReconstructor:
         start: NDArray[np.float64],
         target: NDArray[np.float64],
         w: NDArray[np.float64],
+        margin: NDArray[np.float64],
         up: NDArray[np.float64] | None,
         contacts: NDArray[np.bool_],
         tilt: NDArray[np.float64],
     ) -> ShapeSolution:
         """Search from ``start`` (:func:`_search`) and report what it found."""
         warm = self._params(start)
-        prob = self._problem(target, w, up, contacts, warm[0], tilt)
+        prob = self._problem(target, w, margin, up, contacts, warm[0], tilt)
         code, rms, C, U, iterations = _search(
             warm, self._rest_params, self._mirror_normal(up), prob, self.config.slack_search,
             self._settings,
@@ -1352,7 +1354,7 @@ class ShapeReconstructor:
             return self._failed(self._why(code, rms), iterations, rms)
         positions = self._positions(C, U)
         return ShapeSolution(
-            positions, True, rms, iterations, None, self._slack(positions, target, w)
+            positions, True, rms, iterations, None, self._slack(positions, target, w, margin)
         )
 
     def _why(self, code: int, rms: float) -> str:
@@ -1371,6 +1373,7 @@ class ShapeReconstructor:
         self,
         target: NDArray[np.float64],
         w: NDArray[np.float64],
+        margin: NDArray[np.float64],
         up: NDArray[np.float64] | None,
         contacts: NDArray[np.bool_],
         spin_ref: NDArray[np.float64],
@@ -1379,11 +1382,10 @@ class ShapeReconstructor:
         """The kernels' arrays. Gravity fixes the spin about z when two endcaps touch,
         one off the z axis (a base-rod endcap's height pins the others' just as well);
         otherwise the free rods' centres keep ``spin_ref``'s (F, 3) rotation about z."""
-        c = self.config
         off_axis = contacts & (self._node_rod >= 0)
         gravity = up is not None and contacts.sum() >= 2 and bool(off_axis.any())
         sw = np.sqrt(w)
-        slack = np.where(w > 0.0, c.slack_sigmas / np.where(w > 0.0, sw, 1.0), np.inf)
+        slack = np.where(w > 0.0, margin, np.inf)
         slack[self._reeled] = np.inf  # a motor holding its cable taut: never slack
         flags = self._flags.copy()
         flags[_GRAVITY] = gravity
@@ -1419,8 +1421,12 @@ class ShapeReconstructor:
         return normal / norm if norm > 1e-9 else np.array([1.0, 0.0, 0.0])
 
     def _slack(
-        self, positions: NDArray[np.float64], target: NDArray[np.float64], w: NDArray[np.float64]
+        self,
+        positions: NDArray[np.float64],
+        target: NDArray[np.float64],
+        w: NDArray[np.float64],
+        margin: NDArray[np.float64],
     ) -> tuple[int, ...]:
         candidates = (w > 0.0) & ~self._reeled
-        short = _short_cables(positions, self._cable_nodes64, target, self._margin(w), candidates)
+        short = _short_cables(positions, self._cable_nodes64, target, margin, candidates)
         return tuple(short.tolist())

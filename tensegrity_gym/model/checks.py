@@ -5,8 +5,14 @@ from __future__ import annotations
 
 import math
 from numbers import Real
+from typing import TYPE_CHECKING
 
-__all__ = ["check_number", "check_open", "check_optional_number"]
+import numpy as np
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+__all__ = ["all_finite", "check_number", "check_open", "check_optional_number"]
 
 
 def check_number(
@@ -54,3 +60,12 @@ def check_open(closed: bool, call: str) -> None:
     closed env has no world left, and would otherwise build a new, un-reset one."""
     if closed:
         raise RuntimeError(f"{call}: the env was closed; make a new one (gym.make) to run again")
+
+
+def all_finite(*arrays: NDArray[np.float64]) -> bool:
+    """True if no entry of ``arrays`` is NaN or infinite. Their sum is tested first (finite
+    only if every term is: one reduction for the common case on a hot path); a sum that
+    is not may still come of finite terms too large to add, so the entries decide then."""
+    if math.isfinite(sum(float(a.sum()) for a in arrays)):
+        return True
+    return all(bool(np.all(np.isfinite(a))) for a in arrays)
