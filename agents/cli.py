@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import logging
 import signal
@@ -37,6 +38,21 @@ def _positive_int(text: str) -> int:
 def _env_kwargs(args: argparse.Namespace, *names: str) -> dict[str, Any]:
     """The ``gym.make`` arguments among ``names`` that the command line gave."""
     return {n: getattr(args, n) for n in names if getattr(args, n) is not None}
+
+
+def _env_kwarg(text: str) -> tuple[str, Any]:
+    """An argparse type: ``KEY:VALUE``, a ``gym.make`` argument as rl-zoo3's
+    ``--env-kwargs`` writes it (the value a Python literal: ``ctrl_cost:0.0``,
+    ``goal_heading:None``, ``terrain:"'valley'"``)."""
+    key, sep, value = text.partition(":")
+    if not sep or not key.isidentifier():
+        raise argparse.ArgumentTypeError(f"expected KEY:VALUE, got {text!r}")
+    try:
+        return key, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        raise argparse.ArgumentTypeError(
+            f"{key}: {value!r} is not a Python literal (quote a string: {key}:\"'{value}'\")"
+        ) from None
 
 
 def _positive_float(text: str) -> float:
@@ -127,6 +143,24 @@ def _demo(args: argparse.Namespace) -> int:
     return 0
 
 
+_OWN_OPTIONS = {"estimator": "--estimator", "randomization": "--randomization",
+                "residual_gait": "--residual-gait"}  # fmt: skip
+"""``gym.make`` arguments that ``train`` has an option of its own for."""
+
+
+def _training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """``--env-kwargs`` and the options that are ``gym.make`` arguments, as one dict;
+    raises ValueError for a key given twice or one that has its own option."""
+    given: dict[str, Any] = {}
+    for key, value in args.env_kwargs or ():
+        if key in _OWN_OPTIONS:
+            raise ValueError(f"--env-kwargs {key}: use {_OWN_OPTIONS[key]} instead")
+        if key in given:
+            raise ValueError(f"--env-kwargs {key} is given twice")
+        given[key] = value
+    return {**given, **_env_kwargs(args, "randomization", "residual_gait")}
+
+
 def _train(args: argparse.Namespace) -> int:
     from agents.train import train
 
@@ -141,7 +175,7 @@ def _train(args: argparse.Namespace) -> int:
             n_envs=args.n_envs,
             config_file=Path(args.config) if args.config else None,
             progress_bar=not args.no_progress,
-            env_kwargs=_env_kwargs(args, "randomization", "residual_gait"),
+            env_kwargs=_training_env_kwargs(args),
             ray_address=args.ray,
             workers=args.workers,
         )
@@ -458,6 +492,11 @@ def _add_train(sub: Any, env_help: str) -> None:
         "--residual-gait", type=_positive_float, default=None, metavar="SCALE",
         help="actions correct the robot's scripted gait, scaled by SCALE "
         "(gym.make(residual_gait=)); default: actions are the rest-length targets",
+    )  # fmt: skip
+    tr.add_argument(
+        "--env-kwargs", type=_env_kwarg, nargs="+", default=None, metavar="KEY:VALUE",
+        help="more gym.make arguments, as rl-zoo3 takes them (the task's, e.g. "
+        "ctrl_cost:0.0); the run's config keeps them and evaluate makes its envs with them",
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")

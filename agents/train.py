@@ -165,6 +165,21 @@ def qualified_id(env_id: str) -> str:
     return env_id if ":" in env_id else f"tensegrity_gym:{env_id}"
 
 
+def check_env_kwargs(env_id: str, env_kwargs: dict[str, Any]) -> None:
+    """ValueError naming each of ``env_kwargs`` that ``gym.make(env_id)`` does not take
+    (neither gymnasium's, ``make_env``'s nor its task's), before a worker starts; the values are
+    checked where the env is made."""
+    import gymnasium as gym
+
+    from tensegrity_gym.envs.factory import make_env
+    from tensegrity_gym.model.registry import task_spec
+
+    own = set(inspect.signature(make_env).parameters) - {"task_arguments"}
+    own |= set(inspect.signature(gym.make).parameters) - {"id", "kwargs"}
+    task = task_spec(gym.spec(env_id).kwargs.get("task", "roll"))
+    task.check(set(env_kwargs) - own)
+
+
 def make_training_env(
     env_id: str,
     n_envs: int,
@@ -242,6 +257,7 @@ def train(
     if env_id not in gym.registry:
         ids = sorted(k for k in gym.registry if k.startswith("tensegrity_gym/"))
         raise ValueError(f"unknown env id {env_id!r}; valid choices: {ids}")
+    check_env_kwargs(env_id, env_kwargs or {})
     params = load_hyperparams(algo, env_id, config_file)
     total = int(timesteps if timesteps is not None else params.pop("n_timesteps", 100_000))
     params.pop("n_timesteps", None)

@@ -332,7 +332,7 @@ def test_chi_square_gate_rejects_a_one_metre_outlier() -> None:
     _simulate(f, rng, 200, 0.005, truth, moving=False)
     y = (truth["d"] - truth["p"]) @ truth["R"]
     y[1] += np.array([0.0, 0.6, 0.8])  # 1 m off
-    good = copy.deepcopy(f)
+    good, fast = copy.deepcopy(f), copy.deepcopy(f)
     result = f.correct([0, 1, 2], y, KIN)
     assert isinstance(result, CorrectionResult)
     np.testing.assert_array_equal(result.accepted, [True, False, True])
@@ -345,6 +345,11 @@ def test_chi_square_gate_rejects_a_one_metre_outlier() -> None:
     # without the gate it would have been used
     ungated = copy.deepcopy(good).correct([1], y[[1]], KIN, gate=None)
     assert ungated.accepted.all()
+    # the hot path with every contact in state order: the same, bit for bit
+    accepted = fast.correct_all(y, np.repeat(KIN[None], 3, axis=0), CHI2_3DOF_999)
+    np.testing.assert_array_equal(accepted, [True, False, True])
+    np.testing.assert_array_equal(fast.state_matrix, f.state_matrix)
+    np.testing.assert_array_equal(fast.covariance, f.covariance)
 
 
 def test_nees_is_near_the_dimension_over_monte_carlo_runs() -> None:

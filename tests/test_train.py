@@ -102,6 +102,33 @@ def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
         train(THREE_BAR, "ppo", "kalman", tmp_path / "x")
     with pytest.raises(ValueError, match=r"unknown env id.*ThreeBarRoll-v0"):
         train("tensegrity_gym/Nope-v0", "ppo", "ukf", tmp_path / "x")
+    with pytest.raises(ValueError, match=r"unknown argument 'ctrl_cst'.*'ctrl_cost'"):
+        train(THREE_BAR, "ppo", "ukf", tmp_path / "x", env_kwargs={"ctrl_cst": 0.0})
+    assert not (tmp_path / "x").exists()  # refused before the run folder is made
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--env-kwargs", "ctrl_cost"], "expected KEY:VALUE, got 'ctrl_cost'"),
+        (["--env-kwargs", "terrain:valley"], "terrain: 'valley' is not a Python literal"),
+        (["--env-kwargs", "estimator:'icp'"], "--env-kwargs estimator: use --estimator"),
+        (["--env-kwargs", "ctrl_cost:0.1", "ctrl_cost:0.2"], "ctrl_cost is given twice"),
+    ],
+)
+def test_bad_env_kwargs_are_one_line_and_exit_2(
+    argv: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
+) -> None:  # fmt: skip
+    from agents.cli import main
+
+    try:
+        code = main(["train", "--out", str(tmp_path / "t"), *argv])
+    except SystemExit as exit_:  # argparse refuses a malformed value itself
+        code = int(exit_.code or 0)
+    assert code == 2
+    assert message in capsys.readouterr().err + caplog.text
+    assert not (tmp_path / "t").exists()
 
 
 # ---------------------------------------------------------------------- training
@@ -358,5 +385,7 @@ def test_a_policy_trained_in_randomised_worlds_is_named_so(tmp_path: Path) -> No
         progress_bar=False,
         env_kwargs={"max_episode_steps": 20, "randomization": "mild"},
     )
-    assert load_policy(out).name == "trained on oracle in mild worlds"
+    policy = load_policy(out)
+    assert policy.name == "trained on oracle in mild worlds"
+    assert policy.env_kwargs == {}  # the condition says which worlds it is evaluated in
     assert load_policy(out, "mine").name == "mine"

@@ -390,20 +390,24 @@ class InekfEstimator:
         f, c = self.filter, self.config
         assert f is not None
         now = self._contacts()
-        for node in [n for n in f.contact_nodes if not now[n]]:
-            f.marginalise(node)
         cov_touch = self._cov_touch
-        if (now != self.in_contact).any():
+        # The filter's contacts are those of in_contact (both start empty and change
+        # together), so only a change of the contacts adds or drops one.
+        if now.tobytes() != self.in_contact.tobytes():
+            for node in [n for n in f.contact_nodes if not now[n]]:
+                f.marginalise(node)
             for touched in np.flatnonzero(now & ~self.in_contact).tolist():
                 if touched not in f.contact_nodes:
                     f.augment(touched, self.shape[touched], cov_touch)
         self.in_contact = now
-        nodes = list(f.contact_nodes)
+        nodes = f.contact_nodes
         if not nodes:
             return False
-        cov = self._cov_kinematics[len(nodes)]
-        result = f.correct(nodes, self.shape[nodes], cov, gate=self._gate)
-        refused = [n for n, ok in zip(nodes, result.accepted.tolist(), strict=True) if not ok]
+        ok = f.correct_all(self.shape[nodes, :], self._cov_kinematics[len(nodes)], self._gate)
+        accepted_each = ok.tolist()
+        refused = [] if all(accepted_each) else [
+            n for n, a in zip(nodes, accepted_each, strict=True) if not a
+        ]  # fmt: skip
         if refused:
             self._rejected["contact_gated"] = self._rejected.get("contact_gated", 0) + len(refused)
         if c.reanchor_slipped and refused and len(refused) < len(nodes):

@@ -66,6 +66,7 @@ _SMALL = 1e-4  # rad: below it the series of exp and J (to theta^4) are exact in
 _BASE = 15  # the covariance's size without contacts: rotation, velocity, position, biases
 _POSE_COLUMNS = np.array([0, 1, 2, 6, 7, 8])  # rotation and position in P
 _POSE_ROWS = _POSE_COLUMNS[:, None]
+_SLOTS = [np.arange(k, dtype=np.int64) for k in range(65)]  # every contact, in state order
 
 
 @dataclass(frozen=True)
@@ -824,10 +825,35 @@ class RightInvariantEkf:
             return CorrectionResult(key, nis, accepted, 0.0)
         slots = np.array([self._slot(n) for n in key], dtype=np.int64)
         threshold = math.inf if gate is None else float(gate)
-        total = _correct(self._T, self._b, self._P, slots, y, cov, threshold, nis, accepted)
+        total = self._correct(slots, y, cov, threshold, nis, accepted)
+        return CorrectionResult(key, nis, accepted, total)
+
+    def correct_all(
+        self, p_body: NDArray[np.float64], cov_body: NDArray[np.float64], gate: float
+    ) -> NDArray[np.bool_]:
+        """:meth:`correct` with every contact, in state order (:attr:`contact_nodes`):
+        the estimator's hot path, its arrays taken as they are (p_body (K, 3), cov_body
+        (K, 3, 3), float64, C-contiguous; K >= 1). Returns which were accepted, (K,)."""
+        m = len(self._nodes)
+        nis, accepted = np.empty(m), np.empty(m, dtype=np.bool_)
+        slots = _SLOTS[m] if m < len(_SLOTS) else np.arange(m, dtype=np.int64)
+        self._correct(slots, p_body, cov_body, gate, nis, accepted)
+        return accepted
+
+    def _correct(
+        self,
+        slots: NDArray[np.int64],
+        y: NDArray[np.float64],
+        cov: NDArray[np.float64],
+        gate: float,
+        nis: NDArray[np.float64],
+        accepted: NDArray[np.bool_],
+    ) -> float:
+        """The correction kernel on the state; its joint NIS of the accepted contacts."""
+        total = _correct(self._T, self._b, self._P, slots, y, cov, gate, nis, accepted)
         if total < 0.0:
             raise np.linalg.LinAlgError("innovation covariance not positive definite")
-        return CorrectionResult(key, nis, accepted, total)
+        return total
 
     def _slot(self, node: int) -> int:
         try:
