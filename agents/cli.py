@@ -144,8 +144,9 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 _OWN_OPTIONS = {"estimator": "--estimator", "randomization": "--randomization",
-                "residual_gait": "--residual-gait"}  # fmt: skip
-"""``gym.make`` arguments that ``train`` has an option of its own for."""
+                "residual_gait": "--residual-gait", "robot": "--env", "task": "--env"}  # fmt: skip
+"""``gym.make`` arguments that ``train`` has an option of its own for (the env id names
+the robot and the task)."""
 
 
 def _training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
@@ -494,9 +495,10 @@ def _add_train(sub: Any, env_help: str) -> None:
         "(gym.make(residual_gait=)); default: actions are the rest-length targets",
     )  # fmt: skip
     tr.add_argument(
-        "--env-kwargs", type=_env_kwarg, nargs="+", default=None, metavar="KEY:VALUE",
-        help="more gym.make arguments, as rl-zoo3 takes them (the task's, e.g. "
-        "ctrl_cost:0.0); the run's config keeps them and evaluate makes its envs with them",
+        "--env-kwargs", type=_env_kwarg, nargs="+", action="extend", default=None,
+        metavar="KEY:VALUE",
+        help="more gym.make arguments for training, as rl-zoo3 takes them (e.g. the "
+        "task's ctrl_cost:0.0); the run's config keeps them",
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")

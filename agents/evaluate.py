@@ -55,13 +55,11 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-EVALUATION_KWARGS = frozenset(
-    {"estimator", "randomization", "calibration", "robot", "max_episode_steps"}
-)
-"""The ``gym.make`` arguments an evaluation sets (by its condition, and its episodes'
-length, the env id's own); a training run's others
-(what its actions mean, ``residual_gait``; its task's, ``--env-kwargs``) are the
-policy's, and every condition's env is made with them."""
+ACTION_KWARGS = ("residual_gait",)
+"""The ``gym.make`` arguments of a training run that say what its actions mean: its
+policy is evaluated with them. Its others (``train --env-kwargs``: its task's reward,
+its terrain) shaped its training only: every policy and baseline of an evaluation runs
+on the env id's own task and worlds, so that the rows compare."""
 
 RANDOM_POLICY = "random"
 GAIT_POLICY = "scripted gait"
@@ -226,9 +224,8 @@ class LoadedPolicy:
     that an episode's actions depend on its seed alone, wherever and in whatever order
     the episodes run."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
-    """What its actions and observations mean, as ``gym.make`` takes it (its training
-    run's env arguments but the :data:`EVALUATION_KWARGS`): every condition's env is made
-    with these."""
+    """What its actions mean, as ``gym.make`` takes it (:data:`ACTION_KWARGS` of its
+    training run's env): every condition's env is made with these."""
     saved: dict[str, bytes] | None = field(default=None, repr=False)
     """A trained policy's files (``model.zip``, ``config.yaml``, ``vecnormalize.pkl``):
     it is pickled (sent to a Ray worker) as these and loaded again there."""
@@ -299,7 +296,7 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
     env_kwargs = config.get("env_kwargs") or {}
     worlds = env_kwargs.get("randomization")
     default = f"trained on {trained_on}" + (f" in {worlds} worlds" if worlds else "")
-    actions = {k: v for k, v in env_kwargs.items() if k not in EVALUATION_KWARGS and v is not None}
+    actions = {k: env_kwargs[k] for k in ACTION_KWARGS if env_kwargs.get(k) is not None}
     return LoadedPolicy(name or default, env_id, trained_on, act, env_kwargs=actions, saved=saved)
 
 

@@ -174,6 +174,9 @@ def check_env_kwargs(env_id: str, env_kwargs: dict[str, Any]) -> None:
     from tensegrity_gym.envs.factory import make_env
     from tensegrity_gym.model.registry import task_spec
 
+    named = sorted({"robot", "task"} & set(env_kwargs))
+    if named:  # an evaluation would make the id's own, and never know
+        raise ValueError(f"env_kwargs {named}: the env id names the robot and the task")
     own = set(inspect.signature(make_env).parameters) - {"task_arguments"}
     own |= set(inspect.signature(gym.make).parameters) - {"id", "kwargs"}
     task = task_spec(gym.spec(env_id).kwargs.get("task", "roll"))

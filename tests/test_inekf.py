@@ -219,6 +219,10 @@ def test_a_filter_whose_every_contact_is_refused_restarts() -> None:
         ]  # fmt: skip
         estimate = est.update(samples, hold)
         assert estimate.is_finite()
+        # through restarts, the filter's contacts are the estimator's (_kinematics
+        # touches the filter's only when those change)
+        assert est.filter is not None
+        assert set(est.filter.contact_nodes) == set(np.flatnonzero(est.in_contact).tolist())
     assert est.health.divergences.get("contacts refused", 0) >= 1, est.health.divergences
     assert "too fast" not in est.health.divergences
     # The restart kept the heading: the base rod lies where it does (measured 3.0
@@ -446,6 +450,7 @@ def test_a_contact_that_slides_along_the_ground_touches_down_again(
     point = dict(zip(f.contact_nodes, f.contact_positions, strict=True))[slid]
     kinematics = f.rotation @ est.shape[slid] + f.position
     assert bool(np.linalg.norm(point - kinematics) < 0.05) is reanchored
+    assert set(f.contact_nodes) == set(np.flatnonzero(est.in_contact).tolist())
 
 
 def test_the_table_runs_over_several_seeds_and_averages_every_row() -> None:

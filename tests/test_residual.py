@@ -88,14 +88,14 @@ def test_a_policy_trained_on_residual_actions_is_evaluated_on_them(tmp_path: Pat
         env_kwargs={"max_episode_steps": 16, "residual_gait": 0.25, "ctrl_cost": 0.0},
     )
     policy = load_policy(out)
-    # its actions' meaning and its task's reward go with it; the episode length is the
-    # evaluation's own
-    assert policy.env_kwargs == {"residual_gait": 0.25, "ctrl_cost": 0.0}
+    # what its actions mean goes with it; its reward and episode length were its
+    # training's: every row of an evaluation runs on the env id's own task
+    assert policy.env_kwargs == {"residual_gait": 0.25}
     try:
         env = _condition_env(policy.env_id, condition("oracle"), policy.env_kwargs).unwrapped
         assert isinstance(env.action_base, FaceGait) and env.residual_scale == 0.25  # type: ignore[attr-defined]
         assert isinstance(env.action_base, ActionBase)  # type: ignore[attr-defined]
-        assert env.task.ctrl_cost == 0.0  # type: ignore[attr-defined]
+        assert env.task.ctrl_cost == 0.05  # type: ignore[attr-defined]
         plain = _condition_env(policy.env_id, condition("oracle"), {}).unwrapped
         assert plain.action_base is None  # type: ignore[attr-defined]
     finally:

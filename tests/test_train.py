@@ -104,6 +104,8 @@ def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
         train("tensegrity_gym/Nope-v0", "ppo", "ukf", tmp_path / "x")
     with pytest.raises(ValueError, match=r"unknown argument 'ctrl_cst'.*'ctrl_cost'"):
         train(THREE_BAR, "ppo", "ukf", tmp_path / "x", env_kwargs={"ctrl_cst": 0.0})
+    with pytest.raises(ValueError, match=r"\['task'\]: the env id names the robot and the task"):
+        train(THREE_BAR, "ppo", "ukf", tmp_path / "x", env_kwargs={"task": "goto"})
     assert not (tmp_path / "x").exists()  # refused before the run folder is made
 
 
@@ -113,7 +115,11 @@ def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
         (["--env-kwargs", "ctrl_cost"], "expected KEY:VALUE, got 'ctrl_cost'"),
         (["--env-kwargs", "terrain:valley"], "terrain: 'valley' is not a Python literal"),
         (["--env-kwargs", "estimator:'icp'"], "--env-kwargs estimator: use --estimator"),
-        (["--env-kwargs", "ctrl_cost:0.1", "ctrl_cost:0.2"], "ctrl_cost is given twice"),
+        (
+            ["--env-kwargs", "ctrl_cost:0.1", "--env-kwargs", "ctrl_cost:0.2"],
+            "ctrl_cost is given twice",
+        ),
+        (["--env-kwargs", "robot:'three_bar_large'"], "--env-kwargs robot: use --env"),
     ],
 )
 def test_bad_env_kwargs_are_one_line_and_exit_2(

@@ -129,6 +129,7 @@ class InekfEstimator:
             raise ValueError(
                 f"InekfConfig.base_rod {self.requested.base_rod} is not a rod of {d.name!r}"
             )
+        self.filter = None  # a reset that fails leaves no filter beside the new contacts
         c = self.config = self.requested.for_robot(d)
         assert c.contact_std is not None and c.kinematics_std is not None  # set for the robot
         self.description = d
