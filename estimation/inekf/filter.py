@@ -66,7 +66,6 @@ _SMALL = 1e-4  # rad: below it the series of exp and J (to theta^4) are exact in
 _BASE = 15  # the covariance's size without contacts: rotation, velocity, position, biases
 _POSE_COLUMNS = np.array([0, 1, 2, 6, 7, 8])  # rotation and position in P
 _POSE_ROWS = _POSE_COLUMNS[:, None]
-_SLOTS = [np.arange(k, dtype=np.int64) for k in range(65)]  # every contact, in state order
 
 
 @dataclass(frozen=True)
@@ -836,8 +835,7 @@ class RightInvariantEkf:
         (K, 3, 3), float64, C-contiguous; K >= 1). Returns which were accepted, (K,)."""
         m = len(self._nodes)
         nis, accepted = np.empty(m), np.empty(m, dtype=np.bool_)
-        slots = _SLOTS[m] if m < len(_SLOTS) else np.arange(m, dtype=np.int64)
-        self._correct(slots, p_body, cov_body, gate, nis, accepted)
+        self._correct(np.arange(m, dtype=np.int64), p_body, cov_body, gate, nis, accepted)
         return accepted
 
     def _correct(
