@@ -6,6 +6,7 @@ diverges. The filter core and the shape solver have tests of their own
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
+from agents.bench_proprio import drift_metrics
 from agents.cli import main
 from agents.offline import estimate_bag
 from estimation.inekf import InekfConfig, InekfEstimator
@@ -20,6 +22,7 @@ from estimation.inekf.config import PAPER_LENGTHS, PAPER_ROD_LENGTH, noise_from_
 from estimation.inekf.contacts import ContactThresholds, ShapeContactDetector
 from estimation.inekf.initialise import levelled
 from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.lie import so3_exp, so3_log
 from tensegrity_gym.model.samples import ImuSample
 from tensegrity_gym.sim.backend import SimBackend
@@ -31,6 +34,8 @@ if TYPE_CHECKING:
     from pathlib import Path
 
     from tensegrity_gym.envs.roll_env import TensegrityEnv
+    from tensegrity_gym.model.description import RobotDescription
+    from tensegrity_gym.model.samples import GroundTruth
 
 ENV_ID = "tensegrity_gym/ThreeBarLargeRoll-v0"
 
@@ -286,17 +291,18 @@ def test_lengths_left_unset_follow_the_robots_size() -> None:
     backend.close()
 
 
-def test_the_drift_table_scores_a_known_offset_and_a_perfect_estimate() -> None:
-    from dataclasses import replace
-
-    from agents.bench_proprio import drift_metrics
-    from tensegrity_gym.model.estimate import Estimate
-
+def _large_robot_at_rest() -> tuple[RobotDescription, GroundTruth]:
+    """The 1.45 m robot and its settled truth after reset(0)."""
     d = load_robot("three_bar_large")
     backend = SimBackend(d)
     backend.reset(np.random.default_rng(0))
     truth = backend.ground_truth()
     assert truth is not None
+    return d, truth
+
+
+def test_the_drift_table_scores_a_known_offset_and_a_perfect_estimate() -> None:
+    d, truth = _large_robot_at_rest()
     # The robot slides 5 m along x; an estimate that lags by 10 % drifts 0.5 m.
     truths, perfect, lagging = [], [], []
     for k in range(51):
@@ -316,6 +322,30 @@ def test_the_drift_table_scores_a_known_offset_and_a_perfect_estimate() -> None:
     assert off["final_drift_m"] == pytest.approx(0.5) and off["drift_percent"] == pytest.approx(10)
     assert off["rpe_translation_m_per_m"] == pytest.approx(0.1, abs=0.01)
     assert off["rpe_rotation_deg_per_m"] == pytest.approx(0.0, abs=1e-6)
+    assert off["com_ground_length_m"] == pytest.approx(5.0)
+    assert off["com_ground_drift_percent"] == pytest.approx(10)
+
+
+def test_the_papers_drift_counts_the_path_in_3d_and_the_ground_drift_the_travel() -> None:
+    d, truth = _large_robot_at_rest()
+    # The robot bobs 0.2 m up and down ten times and moves 1 m along x; the estimate
+    # ends 0.1 m short along x.
+    truths, estimates = [], []
+    for k in range(21):
+        shift = np.array([0.05 * k, 0.0, 0.2 * (k % 2)])
+        t = replace(truth, node_positions=truth.node_positions + shift, com=truth.com + shift)
+        truths.append(t)
+        lag = shift * np.array([0.9, 1.0, 1.0])
+        estimates.append(Estimate(0.0, truth.node_positions + lag,
+                                  np.zeros_like(truth.node_positions), truth.com + lag,
+                                  d.rest_lengths))  # fmt: skip
+    m = drift_metrics(truths, estimates, d.cable_nodes)
+    step = float(np.hypot(0.05, 0.2))
+    assert m["trajectory_length_m"] == pytest.approx(20 * step, abs=1e-3)
+    assert m["final_drift_m"] == pytest.approx(0.1)
+    assert m["drift_percent"] == pytest.approx(100 * 0.1 / (20 * step), abs=0.01)
+    assert m["com_ground_length_m"] == pytest.approx(1.0)
+    assert m["com_ground_drift_percent"] == pytest.approx(10)
 
 
 def test_the_ukf_without_uwb_keeps_only_the_first_seconds_ranges() -> None:

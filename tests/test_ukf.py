@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import logging
 import math
 import subprocess
 import sys
@@ -40,6 +41,7 @@ from estimation.ukf import (
     UnscentedKalmanFilter,
 )
 from estimation.ukf.estimator import NOT_PLACED
+from estimation.ukf.initialise import InitialisationError
 from estimation.ukf.measurements import MeasurementModel, RowKind, ahrs_axis
 from estimation.ukf.sigma_points import CholeskyError, robust_cholesky, sigma_points
 from tensegrity_gym.model.description import load_robot
@@ -915,6 +917,32 @@ def test_divergence_reinitialises_with_a_flag(rolling: Recording, fault: Any) ->
     assert after.healthy and not after.reinitialised
     assert _com_error(after, rec.steps[k + 1].truth) < 0.05
     assert np.all(np.isfinite(est.filter.P)) and np.all(np.isfinite(est.filter.x))
+
+
+def test_a_run_of_failed_reinitialisations_warns_once(
+    rolling: Recording, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A robot out of UWB reach fails to re-initialise every period: one warning, not
+    one at 10 Hz, and a line when it is placed again."""
+    rec = rolling
+    k = 12
+    est = _rolling_estimator(rec, k)
+
+    def no_fit() -> None:
+        raise InitialisationError("0 UWB ranges to anchors arrived")
+
+    monkeypatch.setattr(est, "_fit", no_fit)
+    with caplog.at_level(logging.DEBUG, logger="estimation.ukf.estimator"):
+        for step in rec.steps[k : k + 3]:
+            _nan_state(est)
+            assert est.update(step.samples, step.command).reinitialised
+        monkeypatch.undo()
+        _nan_state(est)
+        placed = est.update(rec.steps[k + 3].samples, rec.steps[k + 3].command)
+    assert placed.reinitialised and placed.is_finite()
+    failed = [r for r in caplog.records if "re-initialisation failed" in r.getMessage()]
+    assert [r.levelno for r in failed] == [logging.WARNING, logging.DEBUG, logging.DEBUG]
+    assert any("after 3 failed attempts" in r.getMessage() for r in caplog.records)
 
 
 def _jump(est: UkfEstimator) -> None:

@@ -172,6 +172,8 @@ class UkfEstimator:
         self._ready = False
         self._unplaced = False
         """Whether the reset could not place the robot (too few UWB ranges yet)."""
+        self._failed_fits = 0
+        """Re-initialisations in a row that found no fit (only the first is a warning)."""
 
     # ------------------------------------------------------------------ set-up
 
@@ -255,6 +257,7 @@ class UkfEstimator:
         self.diagnostics = UkfDiagnostics(health=self.health)
         self.readings.absorb(samples)
         self._unplaced = False
+        self._failed_fits = 0
         if c.initial_positions is not None:
             nodes = np.asarray(c.initial_positions, dtype=np.float64)
             n = d.n_nodes
@@ -289,6 +292,13 @@ class UkfEstimator:
             nodes = self._fit()
         except (InitialisationError, ValueError, np.linalg.LinAlgError):
             return None
+        return self._placed(nodes)
+
+    def _placed(self, nodes: NDArray[np.float64]) -> Estimate:
+        """Start over from ``nodes`` (n, 3), m, fitted to the samples just now."""
+        if self._failed_fits > 1:
+            log.info("UKF re-initialised after %d failed attempts", self._failed_fits)
+        self._failed_fits = 0
         self._unplaced = False
         self._start(nodes)
         self.health.reinitialised(placed=True)
@@ -450,7 +460,10 @@ class UkfEstimator:
         try:
             nodes = self._fit()
         except (InitialisationError, ValueError, np.linalg.LinAlgError) as err:
-            log.warning("UKF re-initialisation failed (%s); keeping the last estimate", err)
+            # A robot out of UWB reach fails every period: warn once, not at 10 Hz.
+            self._failed_fits += 1
+            level = logging.WARNING if self._failed_fits == 1 else logging.DEBUG
+            log.log(level, "UKF re-initialisation failed (%s); keeping the last estimate", err)
             x = self.filter.x
             if not np.all(np.isfinite(x)):
                 # Nothing finite to fall back on: the description's resting shape.
@@ -460,10 +473,7 @@ class UkfEstimator:
             self._start(nodes)
             self.health.reinitialised(placed=False)
             return self._estimate()
-        self._unplaced = False
-        self._start(nodes)
-        self.health.reinitialised(placed=True)  # placed by the samples just now
-        return self._estimate()
+        return self._placed(nodes)
 
     def _estimate(self) -> Estimate:
         d = self.description
