@@ -2,7 +2,7 @@
 
     python scripts/find_gait.py three_bar_large [--direction forward|backward]
         [--turn left|right [--candidates 6]] [--seeds 0 1 2 3] [--max-combo 3]
-        [--hold 25] [--settle 10] [--steps 600] [--restarts 4] [--cache FILE]
+        [--hold 25] [--settle 10] [--ramp 0] [--steps 600] [--restarts 4] [--cache FILE]
 
 The robot starts as an episode does (``reset(seed)``, on the simulator's ground truth)
 and is run in closed loop, one gait period at a time, exactly as
@@ -10,12 +10,13 @@ and is run in closed loop, one gait period at a time, exactly as
 has, its action; on a face met for the first time, every candidate action (one, two or
 three actuated cables fully contracted, the others held at their initial rest length or
 let out to their maximum) is tried for ``--hold`` control steps and ``--settle`` steps
-of the initial rest lengths, and the best is entered in the table. A transition depends
-on the state it starts from (the cables are not all back at their rest lengths after
-``--settle``, and the reset's random yaw changes how a flip lands), so the table is run
-from every reset of ``--seeds`` in turn: a face met later gets its own entry, and an
-entry that leaves the robot on its face (a stall) is struck from that face's choices
-and the search starts again (``--restarts``). The objectives:
+of the initial rest lengths (the commands moved along ramps of ``--ramp`` steps across
+the motors' range, as the gait's ``ramp_steps``), and the best is entered in the table.
+A transition depends on the state it starts from (the cables are not all back at their
+rest lengths after ``--settle``, and the reset's random yaw changes how a flip lands), so
+the table is run from every reset of ``--seeds`` in turn: a face met later gets its own
+entry, and an entry that leaves the robot on its face (a stall) is struck from that
+face's choices and the search starts again (``--restarts``). The objectives:
 
 - ``--direction forward``: the CoM furthest along the first transition's heading
   (fixed to the robot's body: the start's support triangle), to a new face or the
@@ -55,14 +56,14 @@ import numpy as np
 import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
-from tensegrity_gym.tasks.gaits import FaceGait, gait_table
+from tensegrity_gym.tasks.gaits import FaceGait, gait_table, ramp_toward
 
 Face = tuple[int, ...]
 Route = tuple[int, ...]  # candidate indices run one period each from the reset
 Table = dict[Face, int]  # face -> candidate index
 TRAVEL = 5.0  # m of CoM path the evaluation's runs need (papers/002, table II)
 MIN_MOVE = 0.1  # m a gait period the model's turning cycles carry the CoM at least
-CACHE_VERSION = 2
+CACHE_VERSION = 3
 
 
 def candidates(m: int, max_combo: int, hold: np.ndarray) -> list[tuple[tuple[int, ...], str, Any]]:
@@ -113,9 +114,11 @@ class Rollouts:
         self.world = self.env.backend.world
         self.hold = self.env.targets_to_action(d.rest_lengths[d.actuated])
         self.tried = candidates(d.n_actuated, args.max_combo, self.hold)
-        self.hold_steps, self.settle_steps = args.hold, args.settle
+        self.hold_steps, self.settle_steps, self.ramp_steps = args.hold, args.settle, args.ramp
         self.cache = cache
-        self._states = {(): self.world.save_state()}
+        # A path's state: the world's and the command the ramp has reached.
+        self._commanded = self.hold.copy()
+        self._states = {(): (self.world.save_state(), self._commanded)}
         self._record(())
         self.yaw0 = self.outcome(())[2]
 
@@ -137,14 +140,15 @@ class Rollouts:
         """Simulate ``path`` from its longest saved prefix, saving the state before its
         last action (from where the search tries the others)."""
         n = max(i for i in range(len(path)) if path[:i] in self._states)
-        self.world.restore_state(self._states[path[:n]])
+        world, self._commanded = self._states[path[:n]]
+        self.world.restore_state(world)
         for i in range(n, len(path)):
             if i == len(path) - 1 and path[:i] not in self._states:
-                self._states[path[:i]] = self.world.save_state()
-            for _ in range(self.hold_steps):
-                self.env.step(self.tried[path[i]][2])
-            for _ in range(self.settle_steps):
-                self.env.step(self.hold)
+                self._states[path[:i]] = (self.world.save_state(), self._commanded)
+            for k in range(self.hold_steps + self.settle_steps):
+                target = self.tried[path[i]][2] if k < self.hold_steps else self.hold
+                self._commanded = ramp_toward(self._commanded, target, self.ramp_steps)
+                self.env.step(self._commanded)
             self._record(path[: i + 1])
 
     def close(self) -> None:
@@ -334,6 +338,7 @@ def closed_loop(args: argparse.Namespace, gait: Any, seed: int) -> dict[str, Any
         table=gait_table(d) if gait is None else gait,
         hold_steps=d.gait.hold_steps if own else args.hold,
         settle_steps=d.gait.settle_steps if own else args.settle,
+        ramp_steps=d.gait.ramp_steps if own else args.ramp,
     )
     period = policy.hold_steps + policy.settle_steps
     obs, _ = env.reset(seed=seed)
@@ -412,6 +417,7 @@ def section(sim: Rollouts, table: Table, args: argparse.Namespace) -> dict[str, 
     return {
         "hold_steps": args.hold,
         "settle_steps": args.settle,
+        **({"ramp_steps": args.ramp} if args.ramp else {}),
         "faces": [
             {
                 "face": [d.nodes[i].name for i in face],
@@ -456,12 +462,15 @@ def main() -> None:
     parser.add_argument("--max-combo", type=int, default=3)
     parser.add_argument("--hold", type=int, default=25, help="control steps of a contraction")
     parser.add_argument("--settle", type=int, default=10, help="control steps of the rest")
+    parser.add_argument(
+        "--ramp", type=int, default=0, help="control steps a command takes across the range"
+    )
     parser.add_argument("--steps", type=int, default=600, help="control steps run in closed loop")
     parser.add_argument("--restarts", type=int, default=4, help="stalled entries struck at most")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--cache", default=None, help="JSON file of outcomes, read and written")
     args = parser.parse_args()
-    meta = {k: getattr(args, k) for k in ("robot", "hold", "settle", "max_combo")}
+    meta = {k: getattr(args, k) for k in ("robot", "hold", "settle", "ramp", "max_combo")}
     meta["version"] = CACHE_VERSION
     doc = (
         json.loads(Path(args.cache).read_text())

@@ -22,7 +22,8 @@ from tensegrity_gym.model.description import (
     loads_robot,
     robot_document,
 )
-from tensegrity_gym.tasks.gaits import FaceGait, gait_table
+from tensegrity_gym.model.randomization import Randomization
+from tensegrity_gym.tasks.gaits import FaceGait, gait_table, ramp_toward
 
 if TYPE_CHECKING:
     from pathlib import Path
@@ -90,6 +91,56 @@ def test_gait_state_resets() -> None:
     env.close()
 
 
+def test_ramp_toward_steps_at_most_its_share_of_the_range() -> None:
+    commanded = np.array([-1.0, 0.5, 0.9], dtype=np.float32)
+    target = np.array([1.0, 0.45, -1.0], dtype=np.float32)
+    nxt = ramp_toward(commanded, target, 10)
+    np.testing.assert_allclose(nxt, [-0.8, 0.45, 0.7], atol=1e-6)  # 2 / 10 a step at most
+    assert nxt.dtype == np.float32
+    np.testing.assert_array_equal(ramp_toward(commanded, target, 0), target)
+    for _ in range(10):
+        commanded = ramp_toward(commanded, target, 10)
+    np.testing.assert_array_equal(commanded, target)  # the whole range in 10 steps
+
+
+def test_a_ramped_gait_moves_its_commands_at_the_ramps_rate() -> None:
+    env = make_roll_env("three_bar")
+    gait = FaceGait(env.backend.description, env.task)
+    assert gait.ramp_steps == 11  # three_bar.yaml's
+    obs, _ = env.reset(seed=0)
+    actions = np.array([gait(obs) for _ in range(gait.hold_steps + gait.settle_steps)])
+    steps = np.abs(np.diff(np.vstack([gait.hold_action, actions]), axis=0))
+    assert steps.max() <= 2.0 / 11 + 1e-6
+    target = gait.action_for_face(gait.support_face(obs))
+    np.testing.assert_array_equal(actions[gait.hold_steps - 1], target)  # reached in the hold
+    assert not np.array_equal(actions[0], target)
+    np.testing.assert_allclose(actions[-1], gait.hold_action, atol=1e-6)  # back by the rest
+    stepped = FaceGait(env.backend.description, env.task, ramp_steps=0)
+    stepped.reset()
+    np.testing.assert_array_equal(stepped(obs), target)
+    env.close()
+
+
+def test_the_ramp_keeps_the_gait_rolling_with_unequal_motors() -> None:
+    # A flip is dynamic: contracted at once by motors 25 % apart, the three cables stop it
+    # on the face between two of the table's, and it falls back every period. Along a
+    # ramp slower than the slowest motor they contract together and it rolls on.
+    env = make_roll_env(
+        "three_bar", estimator="oracle", randomization=Randomization(motor_speed=(0.75, 1.25))
+    )
+    travel = {}
+    for ramp in (0, 11):
+        gait = FaceGait(env.backend.description, env.task, ramp_steps=ramp)
+        obs, _ = env.reset(seed=1003)
+        start = env.backend.ground_truth().com[:2].copy()
+        for _ in range(140):
+            obs, *_ = env.step(gait(obs))
+        travel[ramp] = float(np.linalg.norm(env.backend.ground_truth().com[:2] - start))
+    env.close()
+    assert travel[0] < 0.1, travel  # metres in 14 s: stalled
+    assert travel[11] > 0.5, travel
+
+
 # ----------------------------------------------------------------- named gaits
 
 
@@ -98,7 +149,10 @@ def test_named_gaits_load_and_round_trip() -> None:
     assert list(d.gaits) == ["forward", "backward", "left", "right"]
     assert d.gaits["forward"] is d.gait
     assert loads_robot(dump_robot(d)) == d
-    assert list(load_robot("three_bar").gaits) == ["forward"]  # a robot with gait: only
+    three_bar = load_robot("three_bar")
+    assert list(three_bar.gaits) == ["forward"]  # a robot with gait: only
+    assert three_bar.gait is not None and three_bar.gait.ramp_steps == 11
+    assert loads_robot(dump_robot(three_bar)) == three_bar  # ramp_steps round-trips
     assert replace(d, gait=None).gaits.keys() == {"backward", "left", "right"}
 
 
@@ -109,6 +163,8 @@ def _broken(doc: dict[str, Any], field: str) -> dict[str, Any]:
         gaits["left"]["faces"][1]["contract"] = ["p6"]
     elif field == "gaits.right.hold_steps":
         gaits["right"]["hold_steps"] = 0
+    elif field == "gaits.right.ramp_steps":
+        gaits["right"]["ramp_steps"] = -1
     elif field == "gaits.backward.faces[0].face":
         gaits["backward"]["faces"][0]["face"] = ["n0", "n1"]
     elif field == "gaits.forward":
@@ -125,6 +181,7 @@ def _broken(doc: dict[str, Any], field: str) -> dict[str, Any]:
     [
         "gaits.left.faces[1].contract[0]",
         "gaits.right.hold_steps",
+        "gaits.right.ramp_steps",
         "gaits.backward.faces[0].face",
         "gaits.forward",
         "gaits.Left",

@@ -864,10 +864,11 @@ def _survive_a_bad_round(rec: Recording, case: str) -> tuple[float, int]:
 def test_a_spurious_uwb_round_is_survived(rolling: Recording, case: str) -> None:
     """One round of wrong ranges: gated out, or (every anchor off at once, which looks
     like the estimate having jumped) one re-initialisation; CoM error measured at most
-    0.6, 0.6 and 2.3 cm over the 10 periods from it."""
+    1.2, 1.2 and 3.9 cm over the 10 periods from it (the gait's ramped commands)."""
     worst, reinitialisations = _survive_a_bad_round(rolling, case)
-    assert worst < 0.03
-    assert reinitialisations <= 1
+    gated = case != "every-anchor-0.3-m-long"
+    assert worst < (0.02 if gated else 0.05)
+    assert reinitialisations == (0 if gated else 1)
 
 
 def test_a_uwb_round_with_every_anchor_range_20_percent_long_is_survived(
@@ -1358,6 +1359,7 @@ def test_imu_and_ahrs_beyond_what_they_can_report_are_rejected(rolling: Recordin
     imu = d.sensors.imu
     est, _ = _start(rec)
     clean, _ = _start(rec)
+    railed = np.array([0.0, 2.0 * imu.accel_full_scale, 0.0])  # the red rod's, stuck
     for step in rec.steps[:14]:
         t = max(s.t for s in step.samples)
         bad: list[Sample] = [
@@ -1370,7 +1372,7 @@ def test_imu_and_ahrs_beyond_what_they_can_report_are_rejected(rolling: Recordin
             AhrsSample(t, 1, np.array([0.3, 0.9, 0.4, 0.6])),
         ]
         samples = [
-            ImuSample(s.t, s.rod, 100.0 * s.accel, s.gyro, s.mag)
+            ImuSample(s.t, s.rod, railed, s.gyro, s.mag)
             if isinstance(s, ImuSample) and s.rod == 0
             else s
             for s in step.samples

@@ -252,11 +252,13 @@ class GaitFace:
 class Gait:
     """A face-to-face rolling gait (``tensegrity_gym.tasks.gaits.FaceGait`` runs it;
     ``scripts/find_gait.py`` finds one): each contraction is held ``hold_steps``
-    control steps, then the initial rest lengths ``settle_steps``."""
+    control steps, then the initial rest lengths ``settle_steps``; commands cross the
+    motors' whole range in ``ramp_steps`` control steps (0: at once)."""
 
     faces: tuple[GaitFace, ...]
     hold_steps: int = 25
     settle_steps: int = 10
+    ramp_steps: int = 0
 
 
 @dataclass(frozen=True)
@@ -619,9 +621,9 @@ def _names(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[in
 def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str = "gait") -> Gait:
     """A gait section at path ``p`` (``gait``, ``gaits.NAME``): faces by node names,
     cables by name (actuated only)."""
-    g = r.mapping(doc, p, {"faces"}, frozenset({"hold_steps", "settle_steps"}))
-    steps = {"hold_steps": 25, "settle_steps": 10}
-    for key, low in (("hold_steps", 1), ("settle_steps", 0)):
+    g = r.mapping(doc, p, {"faces"}, frozenset({"hold_steps", "settle_steps", "ramp_steps"}))
+    steps = {"hold_steps": 25, "settle_steps": 10, "ramp_steps": 0}
+    for key, low in (("hold_steps", 1), ("settle_steps", 0), ("ramp_steps", 0)):
         value = g.get(key, steps[key])
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise r.fail(f"{p}.{key}", f"expected an integer >= {low}, got {value!r}")
@@ -641,7 +643,7 @@ def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str =
         if f["others"] not in ("hold", "out"):
             raise r.fail(f"{q}.others", f"expected 'hold' or 'out', got {f['others']!r}")
         faces.append(GaitFace(face, contract, f["others"]))
-    return Gait(tuple(faces), steps["hold_steps"], steps["settle_steps"])
+    return Gait(tuple(faces), **steps)
 
 
 def _gaits(
@@ -931,6 +933,7 @@ def gait_document(d: RobotDescription, name: str = DEFAULT_GAIT) -> dict[str, An
     return {
         "hold_steps": gait.hold_steps,
         "settle_steps": gait.settle_steps,
+        **({"ramp_steps": gait.ramp_steps} if gait.ramp_steps else {}),
         "faces": [
             {
                 "face": [d.nodes[i].name for i in f.face],

@@ -4,7 +4,12 @@ The robot rests on a support face (its three lowest nodes). For each face of its
 rolling cycle, a table names the actuated cables to contract fully and whether the
 others hold their initial rest length or are let out to their maximum. The gait holds
 that command for ``hold_steps``, then returns to the initial lengths for
-``settle_steps`` so the robot comes to rest on its next face, and repeats.
+``settle_steps`` so the robot comes to rest on its next face, and repeats. A gait with
+``ramp_steps`` moves its commands along a ramp, each across the motors' whole range in
+that many control steps: slower than the slowest motor, so that motors faster or slower
+than their rating still contract together (a flip is dynamic: with the three cables'
+motors ±25 % apart, ThreeBarRoll-v0's robot stops halfway, on the face between two of
+the table's, every period).
 
 Each preset's tables live with the robot, in its YAML
 (:class:`tensegrity_gym.model.description.Gait`): the ``gait`` section is its default,
@@ -33,7 +38,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import Task
     from tensegrity_gym.tasks.common import TaskObservation
 
-__all__ = ["FaceGait", "GaitTable", "gait_table"]
+__all__ = ["FaceGait", "GaitTable", "gait_table", "ramp_toward"]
 
 GaitTable = dict[tuple[int, ...], tuple[tuple[int, ...], str]]
 """Face (sorted node indices) -> (actuated cable indices to contract, "hold" | "out")."""
@@ -56,6 +61,20 @@ def gait_table(description: RobotDescription, gait: str = DEFAULT_GAIT) -> GaitT
     return {f.face: (f.contract, f.others) for f in found.faces}
 
 
+def ramp_toward(
+    commanded: NDArray[np.float32], target: NDArray[np.float32], ramp_steps: int
+) -> NDArray[np.float32]:
+    """The next command, actions (m,) in [-1, 1]: ``target`` where it lies within one
+    step of ``commanded``, else one step toward it (a step: 2 / ``ramp_steps``, the
+    whole range in ``ramp_steps`` calls); ``ramp_steps`` 0: ``target`` at once."""
+    if ramp_steps <= 0:
+        return target.copy()
+    step = np.float32(2.0 / ramp_steps)
+    delta = target - commanded
+    # Within a step (and float32's rounding of the steps taken): there.
+    return np.where(np.abs(delta) <= step + 1e-6, target, commanded + np.sign(delta) * step)
+
+
 class FaceGait:
     """A scripted policy that rolls the robot face to face.
 
@@ -75,6 +94,8 @@ class FaceGait:
             another.
         hold_steps, settle_steps: control steps of the contraction and of the rest;
             ``None``: the robot's gait's (25 and 10 without one).
+        ramp_steps: control steps a command takes to cross the motors' whole range
+            (:func:`ramp_toward`; 0: at once); ``None``: the robot's gait's (0 without one).
     """
 
     def __init__(
@@ -86,6 +107,7 @@ class FaceGait:
         table: GaitTable | None = None,
         hold_steps: int | None = None,
         settle_steps: int | None = None,
+        ramp_steps: int | None = None,
     ) -> None:
         table = gait_table(description, gait) if table is None else table
         spec = description.gaits.get(gait)
@@ -93,9 +115,11 @@ class FaceGait:
             hold_steps = spec.hold_steps if spec else 25
         if settle_steps is None:
             settle_steps = spec.settle_steps if spec else 10
+        if ramp_steps is None:
+            ramp_steps = spec.ramp_steps if spec else 0
         self.gait = gait
-        if hold_steps < 1 or settle_steps < 0:
-            raise ValueError("hold_steps must be >= 1 and settle_steps >= 0")
+        if hold_steps < 1 or settle_steps < 0 or ramp_steps < 0:
+            raise ValueError("hold_steps must be >= 1, settle_steps and ramp_steps >= 0")
         m = description.n_actuated
         for face, (cables, rest) in table.items():
             if rest not in ("hold", "out") or any(not 0 <= k < m for k in cables):
@@ -111,6 +135,7 @@ class FaceGait:
         self.task = task
         self.hold_steps = hold_steps
         self.settle_steps = settle_steps
+        self.ramp_steps = ramp_steps
         lo, hi, _ = description.motor_limits
         rest_action = 2.0 * (description.rest_lengths[description.actuated] - lo) / (hi - lo) - 1.0
         self.hold_action = rest_action.astype(np.float32)
@@ -123,6 +148,7 @@ class FaceGait:
 
     def reset(self) -> None:
         self._phase = 0
+        self._commanded = self.hold_action.copy()
 
     def support_face(self, observation: NDArray[np.float32]) -> tuple[int, ...]:
         z = self._decode(observation).positions[:, 2]
@@ -139,8 +165,8 @@ class FaceGait:
         period = self.hold_steps + self.settle_steps
         phase = self._phase
         self._phase = (phase + 1) % period
-        if phase < self.hold_steps:
-            if phase == 0:
-                self._command = self.action_for_face(self.support_face(observation))
-            return self._command.copy()
-        return self.hold_action.copy()
+        if phase == 0:
+            self._target = self.action_for_face(self.support_face(observation))
+        target = self._target if phase < self.hold_steps else self.hold_action
+        self._commanded = ramp_toward(self._commanded, target, self.ramp_steps)
+        return self._commanded.copy()
