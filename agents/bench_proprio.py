@@ -7,10 +7,11 @@ Each run rolls ``ThreeBarLargeRoll-v0`` with a scripted gait driven by the true 
 run beside it on the period's samples and are scored against the truth. Figures per
 run, as papers/002 computes them with evo: trajectory length (m, the path of the body
 frame, the base rod's centre where the IMU sits, in 3-D, one pose a control step),
-final drift (m, of the body frame's displacement from the start: the start is aligned,
-as the paper aligns the initial segment, the initial pose being unobservable), drift %
-of length, RPE RMSE per metre of travel (translation m/m, rotation deg/m, of the base
-rod's pose over 1 m segments) and the shape RMSE (m, of the cable-connected endcap
+final drift (m, of the body frame's displacement from the start: the start is aligned
+by position, as the paper aligns the initial segment, the initial position being
+unobservable; the heading is not aligned), drift % of length, RPE RMSE per metre of
+that path (translation m/m, rotation deg/m, of the base rod's pose over 1 m segments of
+it, as evo's RPE with its delta in metres) and the shape RMSE (m, of the cable-connected endcap
 distances). Beside them a stricter drift, of the CoM over its travel in the ground
 plane (``com_ground_*``): a rocking gait's bobbing and the rod centre's swing about the
 CoM lengthen the paper's path without moving the robot anywhere.
@@ -97,21 +98,20 @@ def drift_metrics(
     step, from the reset on); the base rod's estimated pose is rod 0's nodes' frame."""
     t_com = np.array([t.com for t in truths])
     e_com = np.array([e.com for e in estimates])
-    steps = np.linalg.norm(np.diff(t_com[:, :2], axis=0), axis=1)
-    distance = np.concatenate([[0.0], np.cumsum(steps)])
     true_poses = [_node_pose(t.node_positions) for t in truths]
     est_poses = [_node_pose(e.node_positions) for e in estimates]
-    trans, rot = _rpe(true_poses, est_poses, distance)
+    t_body = np.array([p for _, p in true_poses])
+    e_body = np.array([p for _, p in est_poses])
+    body_path = _path(t_body)
+    trans, rot = _rpe(true_poses, est_poses, body_path)
     t_nodes = np.array([t.node_positions for t in truths])
     e_nodes = np.array([e.node_positions for e in estimates])
     a, b = cable_nodes[:, 0], cable_nodes[:, 1]
     d_true = np.linalg.norm(t_nodes[:, a] - t_nodes[:, b], axis=-1)
     d_est = np.linalg.norm(e_nodes[:, a] - e_nodes[:, b], axis=-1)
-    t_body = np.array([p for _, p in true_poses])
-    e_body = np.array([p for _, p in est_poses])
-    body_length = float(np.sum(np.linalg.norm(np.diff(t_body, axis=0), axis=1)))
+    body_length = float(body_path[-1])
     body_drift = _final_drift(e_body, t_body)
-    com_drift, com_length = _final_drift(e_com, t_com), float(distance[-1])
+    com_drift, com_length = _final_drift(e_com, t_com), float(_path(t_com[:, :2])[-1])
     return {
         "trajectory_length_m": round(body_length, 3),
         "final_drift_m": round(body_drift, 4),
@@ -123,6 +123,11 @@ def drift_metrics(
         "rpe_rotation_deg_per_m": round(rot, 3),
         "shape_rmse_m": round(float(np.sqrt(np.mean((d_est - d_true) ** 2))), 4),
     }
+
+
+def _path(points: NDArray[np.float64]) -> NDArray[np.float64]:
+    """m: the distance along ``points`` (T, d) from the first to each, (T,)."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
 
 
 def _final_drift(estimated: NDArray[np.float64], true: NDArray[np.float64]) -> float:

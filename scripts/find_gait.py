@@ -56,7 +56,8 @@ import numpy as np
 import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
-from tensegrity_gym.tasks.gaits import FaceGait, gait_table, ramp_toward
+from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.tasks.gaits import FaceGait, gait_table, period_commands
 
 Face = tuple[int, ...]
 Route = tuple[int, ...]  # candidate indices run one period each from the reset
@@ -145,10 +146,12 @@ class Rollouts:
         for i in range(n, len(path)):
             if i == len(path) - 1 and path[:i] not in self._states:
                 self._states[path[:i]] = (self.world.save_state(), self._commanded)
-            for k in range(self.hold_steps + self.settle_steps):
-                target = self.tried[path[i]][2] if k < self.hold_steps else self.hold
-                self._commanded = ramp_toward(self._commanded, target, self.ramp_steps)
-                self.env.step(self._commanded)
+            steps = (self.hold_steps, self.settle_steps, self.ramp_steps)
+            for command in period_commands(
+                self._commanded, self.tried[path[i]][2], self.hold, steps
+            ):
+                self.env.step(command)
+                self._commanded = command
             self._record(path[: i + 1])
 
     def close(self) -> None:
@@ -391,6 +394,7 @@ def measure(args: argparse.Namespace, sims: list[Rollouts], table: Table) -> lis
 def describe(args: argparse.Namespace, name: str, runs: list[dict[str, Any]], forward: Any) -> str:
     """The YAML comment that says what the gait does, on every seed."""
     flags = f"--turn {args.turn}" if args.turn else f"--direction {args.direction}"
+    flags += f" --ramp {args.ramp}" if args.ramp else ""
     seeds = " ".join(map(str, args.seeds))
     lines = [
         f"# {name}: found by scripts/find_gait.py {args.robot} {flags} --seeds {seeds}.",
@@ -452,6 +456,13 @@ def find(args: argparse.Namespace, sims: list[Rollouts], forward: Any) -> tuple[
     return table, runs
 
 
+def _steps(text: str) -> int:
+    """A count of control steps (argparse type): an integer >= 0."""
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}")
+    return int(text)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("robot")
@@ -463,13 +474,19 @@ def main() -> None:
     parser.add_argument("--hold", type=int, default=25, help="control steps of a contraction")
     parser.add_argument("--settle", type=int, default=10, help="control steps of the rest")
     parser.add_argument(
-        "--ramp", type=int, default=0, help="control steps a command takes across the range"
+        "--ramp",
+        type=_steps,
+        default=None,
+        help="control steps a command takes across the range (default: the robot gait's)",
     )
     parser.add_argument("--steps", type=int, default=600, help="control steps run in closed loop")
     parser.add_argument("--restarts", type=int, default=4, help="stalled entries struck at most")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3])
     parser.add_argument("--cache", default=None, help="JSON file of outcomes, read and written")
     args = parser.parse_args()
+    if args.ramp is None:
+        own = load_robot(args.robot).gait
+        args.ramp = own.ramp_steps if own is not None else 0
     meta = {k: getattr(args, k) for k in ("robot", "hold", "settle", "ramp", "max_combo")}
     meta["version"] = CACHE_VERSION
     doc = (

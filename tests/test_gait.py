@@ -118,7 +118,16 @@ def test_a_ramped_gait_moves_its_commands_at_the_ramps_rate() -> None:
     stepped = FaceGait(env.backend.description, env.task, ramp_steps=0)
     stepped.reset()
     np.testing.assert_array_equal(stepped(obs), target)
+    with pytest.raises(ValueError, match=r"ramp_steps from 0 to hold_steps \(got 26\)"):
+        FaceGait(env.backend.description, env.task, ramp_steps=26)
     env.close()
+
+
+def test_a_ramp_longer_than_the_hold_is_refused_naming_the_field() -> None:
+    doc = robot_document(load_robot("three_bar"))
+    doc["gait"]["ramp_steps"] = 30
+    with pytest.raises(DescriptionError, match=r"^robot.yaml: gait.ramp_steps: expected at most "):
+        loads_robot(yaml.safe_dump(doc, sort_keys=False), "robot.yaml")
 
 
 def test_the_ramp_keeps_the_gait_rolling_with_unequal_motors() -> None:

@@ -40,6 +40,7 @@ from estimation.ukf import (
     UkfEstimator,
     UnscentedKalmanFilter,
 )
+from estimation.ukf import estimator as estimator_module
 from estimation.ukf.estimator import NOT_PLACED
 from estimation.ukf.initialise import InitialisationError
 from estimation.ukf.measurements import MeasurementModel, RowKind, ahrs_axis
@@ -944,6 +945,28 @@ def test_a_run_of_failed_reinitialisations_warns_once(
     failed = [r for r in caplog.records if "re-initialisation failed" in r.getMessage()]
     assert [r.levelno for r in failed] == [logging.WARNING, logging.DEBUG, logging.DEBUG]
     assert any("after 3 failed attempts" in r.getMessage() for r in caplog.records)
+
+
+def test_failed_reinitialisations_warn_again_after_the_interval(
+    rolling: Recording, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A failure the interval (robot time) after the last warning warns again: a second
+    loss of UWB minutes later is seen."""
+    rec = rolling
+    k = 12
+    est = _rolling_estimator(rec, k)
+    monkeypatch.setattr(estimator_module, "FAILED_FIT_WARNING_INTERVAL_S", 0.25)
+
+    def no_fit() -> None:
+        raise InitialisationError("0 UWB ranges to anchors arrived")
+
+    monkeypatch.setattr(est, "_fit", no_fit)
+    with caplog.at_level(logging.DEBUG, logger="estimation.ukf.estimator"):
+        for step in rec.steps[k : k + 5]:  # 0.1 s apart: warned at 0 and 0.3 s
+            _nan_state(est)
+            assert est.update(step.samples, step.command).reinitialised
+    failed = [r.levelno for r in caplog.records if "re-initialisation failed" in r.getMessage()]
+    assert failed == [logging.WARNING, logging.DEBUG, logging.DEBUG, logging.WARNING, logging.DEBUG]
 
 
 def _jump(est: UkfEstimator) -> None:

@@ -60,6 +60,9 @@ __all__ = ["FilterStep", "UkfConfig", "UkfDiagnostics", "UkfEstimator"]
 log = logging.getLogger(__name__)
 
 NOT_PLACED = "not placed at reset"
+FAILED_FIT_WARNING_INTERVAL_S = 10.0
+"""Robot-clock seconds between warnings of failed re-initialisations: a robot out of UWB
+reach fails every period, and one line says so; a later failure warns again."""
 """The re-initialisation a reset asks for when too few UWB ranges reached the anchors."""
 
 
@@ -173,7 +176,9 @@ class UkfEstimator:
         self._unplaced = False
         """Whether the reset could not place the robot (too few UWB ranges yet)."""
         self._failed_fits = 0
-        """Re-initialisations in a row that found no fit (only the first is a warning)."""
+        """Re-initialisations that found no fit since the last that placed the robot."""
+        self._fit_warned_ns: int | None = None
+        """Robot-clock ns of the last warning of a failed re-initialisation."""
 
     # ------------------------------------------------------------------ set-up
 
@@ -258,6 +263,7 @@ class UkfEstimator:
         self.readings.absorb(samples)
         self._unplaced = False
         self._failed_fits = 0
+        self._fit_warned_ns = None
         if c.initial_positions is not None:
             nodes = np.asarray(c.initial_positions, dtype=np.float64)
             n = d.n_nodes
@@ -462,7 +468,11 @@ class UkfEstimator:
         except (InitialisationError, ValueError, np.linalg.LinAlgError) as err:
             # A robot out of UWB reach fails every period: warn once, not at 10 Hz.
             self._failed_fits += 1
-            level = logging.WARNING if self._failed_fits == 1 else logging.DEBUG
+            t, last = self.readings.t_ns, self._fit_warned_ns
+            interval = seconds_to_ns(FAILED_FIT_WARNING_INTERVAL_S)
+            level = logging.DEBUG
+            if self._failed_fits == 1 or last is None or t - last >= interval:
+                level, self._fit_warned_ns = logging.WARNING, t
             log.log(level, "UKF re-initialisation failed (%s); keeping the last estimate", err)
             x = self.filter.x
             if not np.all(np.isfinite(x)):

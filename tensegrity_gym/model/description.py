@@ -628,6 +628,12 @@ def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str =
         if not isinstance(value, int) or isinstance(value, bool) or value < low:
             raise r.fail(f"{p}.{key}", f"expected an integer >= {low}, got {value!r}")
         steps[key] = value
+    if steps["ramp_steps"] > steps["hold_steps"]:
+        raise r.fail(
+            f"{p}.ramp_steps",
+            f"expected at most hold_steps ({steps['hold_steps']}): a ramp longer than the "
+            f"hold never reaches its contraction, got {steps['ramp_steps']}",
+        )
     node_index = {n.name: i for i, n in enumerate(nodes)}
     actuated = {c.name: k for k, c in enumerate(c for c in cables if c.actuated)}
     faces: list[GaitFace] = []

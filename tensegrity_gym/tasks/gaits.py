@@ -9,7 +9,9 @@ that command for ``hold_steps``, then returns to the initial lengths for
 that many control steps: slower than the slowest motor, so that motors faster or slower
 than their rating still contract together (a flip is dynamic: with the three cables'
 motors ±25 % apart, ThreeBarRoll-v0's robot stops halfway, on the face between two of
-the table's, every period).
+the table's, every period). Like the hold and the rest, the ramp is counted in control
+steps (the 3-bar's 11 assume its 0.1 s period), and the way back to the initial lengths
+is part of the rest.
 
 Each preset's tables live with the robot, in its YAML
 (:class:`tensegrity_gym.model.description.Gait`): the ``gait`` section is its default,
@@ -30,7 +32,7 @@ import numpy as np
 from tensegrity_gym.model.description import DEFAULT_GAIT, DescriptionError
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Iterator
 
     from numpy.typing import NDArray
 
@@ -38,7 +40,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import Task
     from tensegrity_gym.tasks.common import TaskObservation
 
-__all__ = ["FaceGait", "GaitTable", "gait_table", "ramp_toward"]
+__all__ = ["FaceGait", "GaitTable", "gait_table", "period_commands", "ramp_toward"]
 
 GaitTable = dict[tuple[int, ...], tuple[tuple[int, ...], str]]
 """Face (sorted node indices) -> (actuated cable indices to contract, "hold" | "out")."""
@@ -68,11 +70,27 @@ def ramp_toward(
     step of ``commanded``, else one step toward it (a step: 2 / ``ramp_steps``, the
     whole range in ``ramp_steps`` calls); ``ramp_steps`` 0: ``target`` at once."""
     if ramp_steps <= 0:
-        return target.copy()
+        return target.astype(commanded.dtype)
     step = np.float32(2.0 / ramp_steps)
     delta = target - commanded
     # Within a step (and float32's rounding of the steps taken): there.
-    return np.where(np.abs(delta) <= step + 1e-6, target, commanded + np.sign(delta) * step)
+    nxt = np.where(np.abs(delta) <= step + 1e-6, target, commanded + np.sign(delta) * step)
+    return nxt.astype(commanded.dtype, copy=False)
+
+
+def period_commands(
+    commanded: NDArray[np.float32],
+    action: NDArray[np.float32],
+    rest: NDArray[np.float32],
+    steps: tuple[int, int, int],
+) -> Iterator[NDArray[np.float32]]:
+    """The commands (m,) of one gait period, a control step each: ``action`` for the
+    hold, then ``rest`` (the initial rest lengths) for the settle, each reached along the
+    ramp from ``commanded`` (the last command). ``steps``: (hold, settle, ramp) steps."""
+    hold_steps, settle_steps, ramp_steps = steps
+    for k in range(hold_steps + settle_steps):
+        commanded = ramp_toward(commanded, action if k < hold_steps else rest, ramp_steps)
+        yield commanded
 
 
 class FaceGait:
@@ -80,7 +98,8 @@ class FaceGait:
 
     Call it with observations of a task in the goal frame (:class:`RollTask` or
     :class:`GoToTask`); it returns actions in [-1, 1], (m,). Keeps a small state (the
-    current face and phase); :meth:`reset` clears it.
+    period under way and the last command, which the ramp starts from); :meth:`reset`
+    clears it.
 
     Args:
         description: the robot; its gait named ``gait`` gives the table unless ``table``
@@ -95,7 +114,8 @@ class FaceGait:
         hold_steps, settle_steps: control steps of the contraction and of the rest;
             ``None``: the robot's gait's (25 and 10 without one).
         ramp_steps: control steps a command takes to cross the motors' whole range
-            (:func:`ramp_toward`; 0: at once); ``None``: the robot's gait's (0 without one).
+            (:func:`ramp_toward`; 0: at once, at most ``hold_steps``); ``None``: the
+            robot's gait's (0 without one).
     """
 
     def __init__(
@@ -118,8 +138,11 @@ class FaceGait:
         if ramp_steps is None:
             ramp_steps = spec.ramp_steps if spec else 0
         self.gait = gait
-        if hold_steps < 1 or settle_steps < 0 or ramp_steps < 0:
-            raise ValueError("hold_steps must be >= 1, settle_steps and ramp_steps >= 0")
+        if hold_steps < 1 or settle_steps < 0 or not 0 <= ramp_steps <= hold_steps:
+            raise ValueError(
+                f"hold_steps must be >= 1 (got {hold_steps}), settle_steps >= 0 (got "
+                f"{settle_steps}), ramp_steps from 0 to hold_steps (got {ramp_steps})"
+            )
         m = description.n_actuated
         for face, (cables, rest) in table.items():
             if rest not in ("hold", "out") or any(not 0 <= k < m for k in cables):
@@ -147,7 +170,7 @@ class FaceGait:
         self.reset()
 
     def reset(self) -> None:
-        self._phase = 0
+        self._period: Iterator[NDArray[np.float32]] = iter(())
         self._commanded = self.hold_action.copy()
 
     def support_face(self, observation: NDArray[np.float32]) -> tuple[int, ...]:
@@ -162,11 +185,11 @@ class FaceGait:
         return self._actions[nearest]
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
-        period = self.hold_steps + self.settle_steps
-        phase = self._phase
-        self._phase = (phase + 1) % period
-        if phase == 0:
-            self._target = self.action_for_face(self.support_face(observation))
-        target = self._target if phase < self.hold_steps else self.hold_action
-        self._commanded = ramp_toward(self._commanded, target, self.ramp_steps)
-        return self._commanded.copy()
+        command = next(self._period, None)
+        if command is None:  # a period begins: the support face chooses its action
+            action = self.action_for_face(self.support_face(observation))
+            steps = (self.hold_steps, self.settle_steps, self.ramp_steps)
+            self._period = period_commands(self._commanded, action, self.hold_action, steps)
+            command = next(self._period)
+        self._commanded = command
+        return command.copy()
