@@ -3,10 +3,13 @@
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
 import logging
 import re
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -25,10 +28,8 @@ from tensegrity_gym.model.description import (
 from tensegrity_gym.model.randomization import Randomization
 from tensegrity_gym.tasks.gaits import FaceGait, gait_table, ramp_toward
 
-if TYPE_CHECKING:
-    from pathlib import Path
-
 LARGE = "tensegrity_gym/ThreeBarLargeRoll-v0"
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_three_bar_gait_rolls_face_to_face(tmp_path) -> None:
@@ -283,3 +284,26 @@ def test_left_turns_left_and_right_turns_right(gait: str, steps: int, least: flo
 def test_each_gait_travels_5_m(gait: str, steps: int) -> None:
     # papers/002 (table II) wants runs of 5 m at least: CoM path from rest to rest.
     assert _run(gait, steps, seed=0)["rest_path_length"] > 5.0
+
+
+def test_find_gaits_search_restores_the_ramp_with_the_world() -> None:
+    """scripts/find_gait.py runs a path on from a saved state: with a ramp cut short by
+    the rest, the command the ramp had reached is restored with the world, so a path run
+    on from its prefix ends where the same path run from the reset does (to PyBullet's
+    restore, 1e-5 m; the ramp restarted from the rest lengths ends 6 mm away)."""
+    spec = importlib.util.spec_from_file_location("find_gait", ROOT / "scripts" / "find_gait.py")
+    assert spec is not None and spec.loader is not None
+    find_gait = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(find_gait)
+    args = argparse.Namespace(robot="three_bar", hold=25, settle=5, ramp=11, max_combo=1)
+    resumed = find_gait.Rollouts(args, 0, {})
+    resumed.outcome((0, 1))  # saves the state after (0,)
+    _, commanded = resumed._states[(0,)]
+    assert not np.allclose(commanded, resumed.hold)  # the ramp is mid-way there
+    face, com, _ = resumed.outcome((0, 2))
+    fresh = find_gait.Rollouts(args, 0, {})
+    fresh_face, fresh_com, _ = fresh.outcome((0, 2))
+    resumed.close()
+    fresh.close()
+    assert face == fresh_face
+    assert np.linalg.norm(com - fresh_com) < 1e-3
