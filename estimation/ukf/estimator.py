@@ -60,10 +60,10 @@ __all__ = ["FilterStep", "UkfConfig", "UkfDiagnostics", "UkfEstimator"]
 log = logging.getLogger(__name__)
 
 NOT_PLACED = "not placed at reset"
+"""The re-initialisation a reset asks for when too few UWB ranges reached the anchors."""
 FAILED_FIT_WARNING_INTERVAL_S = 10.0
 """Robot-clock seconds between warnings of failed re-initialisations: a robot out of UWB
 reach fails every period, and one line says so; a later failure warns again."""
-"""The re-initialisation a reset asks for when too few UWB ranges reached the anchors."""
 
 
 @dataclass(frozen=True)
