@@ -420,7 +420,8 @@ def bench_filter_speed(
                     )
 
                 ref = _filterpy_ukf(x0, P0, estimator.config)
-                ref.Q = np.diag(prepared.process_noise)
+                q = prepared.process_noise
+                ref.Q = np.diag(q) if q.ndim == 1 else q
                 t0 = time.perf_counter()
                 ref.predict(dt=prepared.duration, fx=fx)
                 ref.update(batch.z, R=np.diag(batch.variance), hx=hx)

@@ -681,7 +681,9 @@ def _add_identify(sub: Any) -> None:
                      help="the simulator's physics, or the UKF's spring-mass model")  # fmt: skip
     ide.add_argument("--segment-seconds", type=float, default=2.0, help="length of a segment")
     ide.add_argument("--max-evaluations", type=_positive_int, default=400,
-                     help="candidates CMA-ES may try")  # fmt: skip
+                     help="the search's budget, in candidates scored on every IMU window "
+                     "(half of it is spent first on a quarter of the windows, four "
+                     "candidates to one)")  # fmt: skip
     ide.add_argument("--workers", type=_positive_int, default=None,
                      help="processes (default: one per core)")  # fmt: skip
     ide.add_argument("--seed", type=int, default=0, help="seeds CMA-ES")

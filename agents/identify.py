@@ -595,8 +595,9 @@ def identify_run(
     IMU's readings over one period from each of at most ``imu_windows_most`` recorded
     states, where the model is the simulator's and the bag has an IMU topic (0: never),
     else the node positions over its segments of ``segment_seconds`` (see
-    :func:`fit_cost`); both are reported before and after. IdentifyError with one line
-    where it cannot."""
+    :func:`fit_cost`); both are reported before and after. ``max_evaluations`` is the
+    search's budget in candidates scored on every IMU window (:func:`_stages`). IdentifyError
+    with one line where it cannot."""
     if model not in MODELS:
         raise IdentifyError(f"identify: unknown model {model!r}; choose from {sorted(MODELS)}")
     start = description or run.description
@@ -627,30 +628,60 @@ def identify_run(
     )  # fmt: skip
 
 
+COARSE_STRIDE = 4
+"""The search's first stage scores candidates on every COARSE_STRIDE-th IMU window ..."""
+COARSE_SHARE = 0.5
+"""... for this share of its budget; the rest scores them on every window."""
+
+
+def _stages(
+    chunks: Sequence[tuple[slice, slice]], max_evaluations: int
+) -> list[tuple[list[tuple[slice, slice]], int]]:
+    """The search's stages: the chunks each scores candidates on, and the evaluation
+    count it runs until. ``max_evaluations`` is the budget in candidates scored on every
+    window; a coarse stage's COARSE_STRIDE candidates cost one.
+
+    The IMU windows' cost is narrow along the damping (off by 7 % it is 16 times its
+    least on the 3-bar bench), and CMA-ES needs many generations to learn such a
+    valley: within 400 evaluations on every window its mean was still far from it (the
+    damping 11 % off), while a quarter of the windows gives four times the generations
+    for the same time, and the last ones, on every window, settle the factors. Where a
+    chunk has too few windows for a share of them to say much (or none), one stage."""
+    if min(w.stop - w.start for _, w in chunks) < 4 * COARSE_STRIDE:
+        return [(list(chunks), max_evaluations)]
+    coarse = [(segments, slice(w.start, w.stop, COARSE_STRIDE)) for segments, w in chunks]
+    coarse_until = round(COARSE_STRIDE * COARSE_SHARE * max_evaluations)
+    fine = max_evaluations - round(COARSE_SHARE * max_evaluations)
+    return [(coarse, coarse_until), (list(chunks), coarse_until + fine)]
+
+
 def _minimise(
     pool: ProcessPoolExecutor, chunks: Sequence[tuple[slice, slice]], names: Sequence[str],
     max_evaluations: int, seed: int,
 ) -> tuple[NDArray[np.float64], int]:  # fmt: skip
     """CMA-ES over the log-factors of ``names`` within their bounds, each generation's
-    candidates scored by :func:`fit_cost` on the pool's workers, a job per chunk: the
-    log-factors (p,) it settled on and the evaluations made."""
+    candidates scored by :func:`fit_cost` on the pool's workers, a job per chunk (on a
+    share of the IMU windows first, :func:`_stages`): the log-factors (p,) it settled
+    on and the evaluations made."""
     import cma
 
     bounds = np.array([_BOUND.get(n, np.log(2.0)) for n in names])
+    stages = _stages(chunks, max_evaluations)
     options = {"bounds": [list(-bounds), list(bounds)], "seed": seed + 1, "verbose": -9,
-               "maxfevals": max_evaluations, "tolfun": 1e-9, "tolx": 1e-4}  # fmt: skip
+               "maxfevals": stages[-1][1], "tolfun": 1e-9, "tolx": 1e-4}  # fmt: skip
     if len(names) == 1:
         # cma 4.5 fails in one dimension when the step outgrows the std it derives from
         # the bounds (a flat cost); the bounds alone hold the search there.
         options["maxstd"] = np.inf
     es = cma.CMAEvolutionStrategy(np.zeros(len(names)), 0.3, options)
-    n = len(chunks)
-    while not es.stop():
-        xs = es.ask()
-        jobs = [(np.asarray(x), c, True) for x in xs for c in chunks]
-        parts = list(pool.map(_errors, jobs))
-        es.tell(xs, [fit_cost(_joined(parts[i * n : (i + 1) * n])) for i in range(len(xs))])
-        logger.info("identify: %d evaluations, best %.4g", es.countevals, es.result.fbest)
+    for stage, until in stages:
+        n = len(stage)
+        while es.countevals < until and not es.stop():
+            xs = es.ask()
+            parts = list(pool.map(_errors, [(np.asarray(x), c, True) for x in xs for c in stage]))
+            costs = [fit_cost(_joined(parts[i * n : (i + 1) * n])) for i in range(len(xs))]
+            es.tell(xs, costs)
+            logger.info("identify: %d evaluations, best %.4g", es.countevals, min(costs))
     # The distribution's mean, not its best sample: the cost is rough at the scale of
     # the last steps (which contacts a replay makes), the mean averages over it (on
     # the 3-bar bench all factors within 1.1 % of the recording's, the best within 1.9).

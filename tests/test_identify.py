@@ -10,6 +10,8 @@ import pytest
 
 from agents.cli import main
 from agents.identify import (
+    COARSE_SHARE,
+    COARSE_STRIDE,
     IdentifyError,
     apply_parameters,
     factor_names,
@@ -82,7 +84,9 @@ def test_stiffness_is_recovered_and_the_open_loop_error_falls(stiffer: RecordedR
     assert result.names == ("actuated_stiffness", "passive_stiffness")
     np.testing.assert_allclose(result.factors, TRUE_STIFFNESS, rtol=0.1)
     assert result.com_after.mean() < result.com_before.mean() / 3
-    assert result.evaluations <= 48 + 10  # one generation past the budget at most
+    # The budget counts candidates on every window: a coarse one costs a quarter.
+    budget = COARSE_STRIDE * COARSE_SHARE * 48 + (1 - COARSE_SHARE) * 48
+    assert result.evaluations <= budget + 2 * 10  # a generation past each stage at most
     fitted = [c.stiffness for c in result.description.cables]
     assert fitted[0] == pytest.approx(NOMINAL.cables[0].stiffness * result.factors[0])
 
@@ -198,6 +202,24 @@ def test_a_bag_without_imu_is_fitted_on_the_nodes_with_a_note(stiffer: RecordedR
     with_imu = identify_run(stiffer, ["damping"], description=NOMINAL, max_evaluations=4,
                             workers=1, imu_windows_most=20)  # fmt: skip
     assert len(with_imu.imu_before) == 20 and fit_notes(with_imu) == []
+
+
+def test_the_search_scores_a_quarter_of_the_windows_first() -> None:
+    """The budget is in candidates scored on every IMU window: half of it goes to four
+    times as many candidates scored on every fourth window, each chunk's own; a chunk
+    with too few windows (or a fit without any) runs one stage on all of it."""
+    from agents.identify import _stages
+
+    chunks = [(slice(0, 15), slice(0, 150)), (slice(15, 30), slice(150, 300))]
+    (coarse, coarse_until), (fine, fine_until) = _stages(chunks, 400)
+    assert [w for _, w in coarse] == [slice(0, 150, 4), slice(150, 300, 4)]
+    assert [s for s, _ in coarse] == [s for s, _ in chunks] and fine == chunks
+    assert (coarse_until, fine_until) == (800, 1000)
+    assert len(range(300)[coarse[1][1]]) == 38  # every fourth of the second chunk's
+    few = [(slice(0, 15), slice(0, 150)), (slice(15, 30), slice(150, 160))]
+    assert _stages(few, 400) == [(few, 400)]
+    none = [(slice(0, 15), slice(0, 0)), (slice(15, 30), slice(0, 0))]
+    assert _stages(none, 400) == [(none, 400)]
 
 
 def test_a_state_set_in_flight_steps_as_the_run_it_was_taken_from() -> None:

@@ -214,7 +214,7 @@ def test_process_noise_is_the_driven_one_while_motors_move_and_a_hold_after() ->
     heights = np.ones(n)  # off the ground
 
     def position_rate(after: np.ndarray) -> float:
-        q = noise.variances(0.1, rest, after, heights)
+        q = noise.covariance(0.1, rest, after, heights)
         assert q.shape == (6 * n,)
         rates = q[: 3 * n] / 0.1
         assert np.all(rates == rates[0])
@@ -226,10 +226,39 @@ def test_process_noise_is_the_driven_one_while_motors_move_and_a_hold_after() ->
     assert position_rate(jitter) == pytest.approx(resting)
     assert position_rate(rest + 0.01) == pytest.approx(driven)  # 0.1 m/s
     assert [position_rate(rest) for _ in range(3)] == pytest.approx([driven, driven, resting])
-    q = noise.variances(0.1, rest, rest + 0.01, heights)
+    q = noise.covariance(0.1, rest, rest + 0.01, heights)
     np.testing.assert_allclose(q[3 * n :] / 0.1, (config.driven_velocity_noise * L) ** 2)
     with pytest.raises(ValueError, match="driven_hold must be positive"):
         UkfConfig(driven_hold=0.0)
+
+
+def test_body_noise_moves_every_node_alike_while_driven() -> None:
+    """``body_position_noise`` adds one variance rate to every pair of nodes' same axis
+    (the robot as a whole off the model): the CoM's variance grows by it, a node's
+    shape relative to the CoM not at all; only while driven; velocities untouched."""
+    d = load_robot("three_bar")
+    config = UkfConfig(driven_hold=0.25, body_position_noise=0.05)
+    noise = ProcessNoise(config, d)
+    n, L, dt = d.n_nodes, d.characteristic_length, 0.1
+    rest, heights = d.rest_lengths[d.actuated], np.ones(n)
+    Q = noise.covariance(dt, rest, rest + 0.01, heights)
+    assert Q.shape == (6 * n, 6 * n)
+    body, node = (0.05 * L) ** 2 * dt, (config.driven_position_noise * L) ** 2 * dt
+    np.testing.assert_allclose(np.diag(Q)[: 3 * n], node + body)
+    mean = np.kron(np.full((1, n), 1.0 / n), np.eye(3))  # the node mean (CoM of equal masses)
+    np.testing.assert_allclose(mean @ Q[: 3 * n, : 3 * n] @ mean.T, (node / n + body) * np.eye(3))
+    relative = np.kron(np.eye(n) - 1.0 / n, np.eye(3))  # each node about the mean
+    shape = relative @ Q[: 3 * n, : 3 * n] @ relative.T
+    np.testing.assert_allclose(shape, node * relative @ relative.T, atol=1e-18)
+    np.testing.assert_array_equal(Q[3 * n :, : 3 * n], 0.0)
+    np.testing.assert_allclose(Q[3 * n :, 3 * n :], np.diag(np.diag(Q)[3 * n :]))
+    for _ in range(3):  # still past the hold: the resting noise, no shared part
+        resting = noise.covariance(dt, rest, rest, heights)
+    assert resting.shape == (6 * n,)
+    plain = ProcessNoise(UkfConfig(body_position_noise=0.0), d)
+    assert plain.covariance(dt, rest, rest + 0.01, heights).shape == (6 * n,)
+    with pytest.raises(ValueError, match="body_position_noise must be non-negative, got -1"):
+        UkfConfig(body_position_noise=-1.0)
 
 
 def test_a_stalled_links_backlog_is_not_fused_all_at_once() -> None:

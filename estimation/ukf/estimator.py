@@ -77,7 +77,8 @@ class FilterStep:
     rest_end: NDArray[np.float64]
     """... and at the end, from the motor encoders (m), (m,)."""
     process_noise: NDArray[np.float64]
-    """Diagonal of Q for this step, (6 n,)."""
+    """Q for this step: its diagonal (6 n,), or the whole (6 n, 6 n) where nodes share
+    noise (``UkfConfig.body_position_noise``)."""
     batch: MeasurementBatch
     duration_ns: int = 0
     """``duration`` in whole nanoseconds, as the samples' clock counts it."""
@@ -416,7 +417,7 @@ class UkfEstimator:
         dt_ns = max(r.t_ns - t_before, 0)
         dt = ns_to_seconds(dt_ns)
         heights = self.filter.x[2 : 3 * self.description.n_nodes : 3]
-        q = self.process_noise.variances(dt, rest_before, r.rest, heights)
+        q = self.process_noise.covariance(dt, rest_before, r.rest, heights)
         return FilterStep(dt, rest_before, r.rest.copy(), q, self._batch(rounds), dt_ns)
 
     def apply(self, step: FilterStep, ukf: UnscentedKalmanFilter) -> UpdateResult:

@@ -1,5 +1,5 @@
-"""The UKF's process noise Q: per node, per contact state, and larger while the robot
-is driven (:class:`ProcessNoise`).
+"""The UKF's process noise Q: per node, per contact state, larger while the robot is
+driven, and optionally shared by every node (:class:`ProcessNoise`).
 
 The spring-mass model is close for a robot at rest and rough for a rolling one: a
 touch-down, a tip over an edge, a slip are where the simulator's (or a real robot's)
@@ -42,7 +42,7 @@ def _node_noise_scale(config: UkfConfig, d: RobotDescription) -> NDArray[np.floa
 
 
 class ProcessNoise:
-    """Q's diagonal for each filter step of one robot; holds how long the motors have
+    """Q for each filter step of one robot; holds how long the motors have
     been still (made anew at each reset of the filter: a robot starts at rest).
 
     Args:
@@ -58,6 +58,8 @@ class ProcessNoise:
         """(2,): position (m^2/s) and velocity (m^2/s^3) variance rates at rest."""
         self.driven = np.array([c.driven_position_noise * L, c.driven_velocity_noise * L]) ** 2
         """(2,): the same while driven."""
+        self.body = (c.body_position_noise * L) ** 2
+        """Position variance rate (m^2/s) shared by every node while driven."""
         self.driven_speed = c.driven_speed
         self.driven_hold = c.driven_hold
         self.node_scale = _node_noise_scale(c, description)
@@ -66,24 +68,34 @@ class ProcessNoise:
         self.still_for = math.inf
         """Seconds since an actuated rest length last moved faster than driven_speed."""
 
-    def variances(
+    def covariance(
         self,
         dt: float,
         rest_before: NDArray[np.float64],
         rest_after: NDArray[np.float64],
         heights: NDArray[np.float64],
     ) -> NDArray[np.float64]:
-        """Q's diagonal (6 n,), positions then velocities, over a step of ``dt`` seconds
-        in which the actuated rest lengths (m,) (m) went from ``rest_before`` to
-        ``rest_after``, the nodes at estimated ``heights`` (n,) (m)."""
+        """Q over a step of ``dt`` seconds in which the actuated rest lengths (m,) (m)
+        went from ``rest_before`` to ``rest_after``, the nodes at estimated ``heights``
+        (n,) (m): its diagonal (6 n,), positions then velocities, where no noise is
+        shared between nodes; else the whole (6 n, 6 n), with the
+        ``body_position_noise`` that moves every node alike while the robot is driven."""
         moved = float(np.max(np.abs(rest_after - rest_before), initial=0.0))
         if dt > 0 and moved > self.driven_speed * dt:
             self.still_for = 0.0
         else:
             self.still_for += dt
-        rates = self.driven if self.still_for <= self.driven_hold else self.resting
+        driven = self.still_for <= self.driven_hold
+        rates = self.driven if driven else self.resting
         scale = self.node_scale
         if self.contact_scale != 1.0:
             scale = scale * np.where(heights <= self.contact_height, self.contact_scale, 1.0)
         per_axis = np.repeat(scale, 3) * dt
-        return np.concatenate([rates[0] * per_axis, rates[1] * per_axis])
+        q = np.concatenate([rates[0] * per_axis, rates[1] * per_axis])
+        if self.body == 0.0 or not driven:
+            return q
+        n = len(heights)
+        Q = np.diag(q)
+        # Every node's x with every node's x, and so on: (1 1^T) kron I3.
+        Q[: 3 * n, : 3 * n] += self.body * dt * np.kron(np.ones((n, n)), np.eye(3))
+        return Q
