@@ -23,7 +23,13 @@ import numpy as np
 import scipy.stats
 
 from agents.bench_estimation import record_face_transition
-from agents.identify import Identification, apply_parameters, factor_names, identify_run
+from agents.identify import (
+    MAX_EVALUATIONS,
+    Identification,
+    apply_parameters,
+    factor_names,
+    identify_run,
+)
 from agents.identify_imu import without_imu
 from agents.runs import replay
 from estimation.ukf import UkfEstimator
@@ -149,7 +155,10 @@ def _identify_figures(result: Identification, wall: float) -> dict[str, Any]:
 
 
 def bench_identify(
-    seconds: float = 60.0, seed: int = 0, max_evaluations: int = 400, nodes_only: bool = True
+    seconds: float = 60.0,
+    seed: int = 0,
+    max_evaluations: int = MAX_EVALUATIONS,
+    nodes_only: bool = True,
 ) -> dict[str, Any]:
     """Identification of a robot :data:`PERTURBATION` away from the description, fitted
     to its IMU readings; with ``nodes_only``, also the same bag without its IMU topic,

@@ -663,7 +663,7 @@ def _add_recordings(sub: Any, env_help: str) -> None:
 
 
 def _add_identify(sub: Any) -> None:
-    from agents.identify import MODELS, PARAMETERS
+    from agents.identify import MAX_EVALUATIONS, MODELS, PARAMETERS
 
     ide = sub.add_parser(
         "identify",
@@ -680,7 +680,7 @@ def _add_identify(sub: Any) -> None:
     ide.add_argument("--model", choices=sorted(MODELS), default="sim",
                      help="the simulator's physics, or the UKF's spring-mass model")  # fmt: skip
     ide.add_argument("--segment-seconds", type=float, default=2.0, help="length of a segment")
-    ide.add_argument("--max-evaluations", type=_positive_int, default=400,
+    ide.add_argument("--max-evaluations", type=_positive_int, default=MAX_EVALUATIONS,
                      help="the search's budget, in candidates scored on every IMU window "
                      "(half of it is spent first on a quarter of the windows, four "
                      "candidates to one)")  # fmt: skip

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from agents.identify import MODELS, identify_run, parameter_values
+from agents.identify import MAX_EVALUATIONS, MODELS, identify_run, parameter_values
 from agents.plots import pyplot
 from tensegrity_gym.model.description import dump_robot, load_robot
 from tensegrity_gym.model.kinematics import center_of_mass
@@ -30,7 +30,7 @@ def identify_command(
     robot: str | None = None,
     model: str = "sim",
     segment_seconds: float = 2.0,
-    max_evaluations: int = 400,
+    max_evaluations: int = MAX_EVALUATIONS,
     workers: int | None = None,
     seed: int = 0,
     imu_windows: int = 300,
