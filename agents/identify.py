@@ -505,7 +505,7 @@ class _Problem:
         left out where there are IMU windows)."""
         d = apply_parameters(self.description, self.names, log_factors)
         segments, windows = self.segments[chunk[0]], self.windows[chunk[1]]
-        if fit and windows:
+        if fit and self.windows:
             segments = ()
         paths = MODELS[self.model](d, segments, self.control_period, self.time_step)
         readings = [w.imu for w in windows if w.imu is not None]
@@ -544,6 +544,8 @@ COARSE_STRIDE = 4
 """The search's first stage scores candidates on every COARSE_STRIDE-th IMU window ..."""
 COARSE_SHARE = 0.5
 """... for this share of its budget; the rest scores them on every window."""
+COARSE_LEAST_WINDOWS = 40
+"""Fewer IMU windows than this (ten in the coarse share): one stage, on all of them."""
 
 
 _PROBLEM: _Problem | None = None
@@ -581,6 +583,8 @@ class Identification:
     units of the sensors' noise) with the starting description; empty without them."""
     imu_after: NDArray[np.float64]
     evaluations: int
+    """Candidates scored, on a share of the IMU windows and on all of them together
+    (:func:`_stages`: a budget of 320 scores about 800)."""
     seconds: float
     """Wall time of the fit (s)."""
     segments: tuple[Segment, ...]
@@ -647,20 +651,24 @@ def _stages(
 ) -> list[tuple[list[tuple[slice, slice]], int]]:
     """The search's stages: the chunks each scores candidates on, and the evaluation
     count it runs until. ``max_evaluations`` is the budget in candidates scored on every
-    window; a coarse stage's COARSE_STRIDE candidates cost one.
+    window; a coarse stage's COARSE_STRIDE candidates cost one. Each stage ends with
+    the generation that reaches its count, so the first may take a few candidates
+    from the second.
 
     The IMU windows' cost is narrow along the damping (off by 7 % it is 16 times its
     least on the 3-bar bench), and CMA-ES needs many generations to learn such a
     valley: within 400 evaluations on every window its mean was still far from it (the
     damping 11 % off), while a quarter of the windows gives four times the generations
-    for the same time, and the last ones, on every window, settle the factors. Where a
-    chunk has too few windows for a share of them to say much (or none), one stage."""
-    if min(w.stop - w.start for _, w in chunks) < 4 * COARSE_STRIDE:
+    for the same time, and the last ones, on every window, settle the factors. The
+    quarter is every COARSE_STRIDE-th window of the bag, whatever the chunks (the
+    worker count); with under COARSE_LEAST_WINDOWS windows in all, one stage."""
+    if sum(w.stop - w.start for _, w in chunks) < COARSE_LEAST_WINDOWS:
         return [(list(chunks), max_evaluations)]
-    coarse = [(segments, slice(w.start, w.stop, COARSE_STRIDE)) for segments, w in chunks]
-    coarse_until = round(COARSE_STRIDE * COARSE_SHARE * max_evaluations)
-    fine = max_evaluations - round(COARSE_SHARE * max_evaluations)
-    return [(coarse, coarse_until), (list(chunks), coarse_until + fine)]
+    coarse = [(segments, slice(w.start + (-w.start) % COARSE_STRIDE, w.stop, COARSE_STRIDE))
+              for segments, w in chunks]  # fmt: skip
+    share = round(COARSE_SHARE * max_evaluations)
+    coarse_until = COARSE_STRIDE * share
+    return [(coarse, coarse_until), (list(chunks), coarse_until + max_evaluations - share)]
 
 
 def _minimise(
@@ -683,6 +691,8 @@ def _minimise(
         options["maxstd"] = np.inf
     es = cma.CMAEvolutionStrategy(np.zeros(len(names)), 0.3, options)
     for stage, until in stages:
+        # The coarse stage settling (its steps under tolx, say) is not the search's end.
+        es.stop().clear()
         n = len(stage)
         while es.countevals < until and not es.stop():
             xs = es.ask()

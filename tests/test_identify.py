@@ -206,20 +206,27 @@ def test_a_bag_without_imu_is_fitted_on_the_nodes_with_a_note(stiffer: RecordedR
 
 def test_the_search_scores_a_quarter_of_the_windows_first() -> None:
     """The budget is in candidates scored on every IMU window: half of it goes to four
-    times as many candidates scored on every fourth window, each chunk's own; a chunk
-    with too few windows (or a fit without any) runs one stage on all of it."""
+    times as many candidates scored on every fourth window of the bag, the same ones
+    whatever the chunks (workers); with too few windows (or none), one stage."""
     from agents.identify import _stages
 
     chunks = [(slice(0, 15), slice(0, 150)), (slice(15, 30), slice(150, 300))]
-    (coarse, coarse_until), (fine, fine_until) = _stages(chunks, 400)
-    assert [w for _, w in coarse] == [slice(0, 150, 4), slice(150, 300, 4)]
+    (coarse, coarse_until), (fine, fine_until) = _stages(chunks, 320)
     assert [s for s, _ in coarse] == [s for s, _ in chunks] and fine == chunks
-    assert (coarse_until, fine_until) == (800, 1000)
-    assert len(range(300)[coarse[1][1]]) == 38  # every fourth of the second chunk's
-    few = [(slice(0, 15), slice(0, 150)), (slice(15, 30), slice(150, 160))]
-    assert _stages(few, 400) == [(few, 400)]
+    assert (coarse_until, fine_until) == (640, 800)
+    assert _stages(chunks, 3)[0][1] == 8 and _stages(chunks, 3)[1][1] == 9  # 2 coarse, 1 fine
+
+    def chosen(chunks: list[tuple[slice, slice]]) -> list[int]:
+        return [i for _, w in _stages(chunks, 320)[0][0] for i in range(300)[w]]
+
+    assert chosen(chunks) == list(range(0, 300, 4))
+    three = [(slice(0, 10), slice(0, 99)), (slice(10, 20), slice(99, 201)),
+             (slice(20, 30), slice(201, 300))]  # fmt: skip
+    assert chosen(three) == list(range(0, 300, 4))
+    few = [(slice(0, 15), slice(0, 20)), (slice(15, 30), slice(20, 39))]
+    assert _stages(few, 320) == [(few, 320)]
     none = [(slice(0, 15), slice(0, 0)), (slice(15, 30), slice(0, 0))]
-    assert _stages(none, 400) == [(none, 400)]
+    assert _stages(none, 320) == [(none, 320)]
 
 
 def test_a_state_set_in_flight_steps_as_the_run_it_was_taken_from() -> None:
