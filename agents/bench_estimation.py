@@ -34,7 +34,6 @@ if TYPE_CHECKING:
 
     from agents.cluster import Executor
     from estimation.ukf.estimator import FilterStep
-    from estimation.ukf.measurements import MeasurementBatch
     from estimation.ukf.spring_mass import KernelArrays
     from tensegrity_gym.envs.roll_env import TensegrityEnv
 
@@ -360,6 +359,35 @@ def _filterpy_ukf(x: NDArray[np.float64], P: NDArray[np.float64], config: UkfCon
     return ukf
 
 
+def _filterpy_step(
+    estimator: UkfEstimator,
+    prepared: FilterStep,
+    x0: NDArray[np.float64],
+    P0: NDArray[np.float64],
+    compiled: bool,
+) -> tuple[float, NDArray[np.float64]]:
+    """filterpy's predict-update of ``prepared`` from mean ``x0`` (6 n,) and covariance
+    ``P0`` (6 n, 6 n), on the estimator's model (its compiled kernel, or plain numpy) and
+    measurements: milliseconds it took, and its mean (6 n,) after. filterpy calls fx and
+    hx once per sigma point."""
+    model, measurements, batch = estimator.model, estimator.measurements, prepared.batch
+
+    def hx(state: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(measurements.predict(batch, state[None])[0])
+
+    def fx(state: NDArray[np.float64], dt: float) -> NDArray[np.float64]:
+        kernel = None if compiled else propagate_numpy
+        return model.propagate(state, dt, prepared.rest_start, prepared.rest_end, kernel=kernel)
+
+    ref = _filterpy_ukf(x0, P0, estimator.config)
+    q = prepared.process_noise
+    ref.Q = np.diag(q) if q.ndim == 1 else q
+    t0 = time.perf_counter()
+    ref.predict(dt=prepared.duration, fx=fx)
+    ref.update(batch.z, R=np.diag(batch.variance), hx=hx)
+    return 1e3 * (time.perf_counter() - t0), np.asarray(ref.x)
+
+
 def bench_filter_speed(
     env_id: str, seed: int = 0, steps: int = 40, numpy_steps: int = 5
 ) -> dict[str, Any]:
@@ -373,7 +401,6 @@ def bench_filter_speed(
     estimator = UkfEstimator(UkfConfig(gate_probability=None))
     rng = np.random.default_rng(seed)
     estimator.reset(run.description, run.calibration, run.start.samples, run.start.command, rng)
-    model, measurements = estimator.model, estimator.measurements
     fast_ms: list[float] = []
     filterpy_ms: list[float] = []
     filterpy_numpy_ms: list[float] = []
@@ -392,43 +419,14 @@ def bench_filter_speed(
             fast_ms.append(1e3 * fast)
             full_update_ms.append(1e3 * (fast + prepare_s))
 
-            batch = prepared.batch
-
-            def hx(
-                state: NDArray[np.float64], batch: MeasurementBatch = batch
-            ) -> NDArray[np.float64]:
-                return np.asarray(measurements.predict(batch, state[None])[0])
-
-            # filterpy calls its fx once per sigma point: once with the same compiled
-            # kernel, and (on the first few steps) with the model in plain numpy.
+            # filterpy once with the same compiled kernel, and (on the first few steps)
+            # with the model in plain numpy.
             for compiled, times in ((True, filterpy_ms), (False, filterpy_numpy_ms)):
                 if not compiled and len(times) >= numpy_steps:
                     continue
-
-                def fx(
-                    state: NDArray[np.float64],
-                    dt: float,
-                    compiled: bool = compiled,
-                    step: FilterStep = prepared,
-                ) -> NDArray[np.float64]:
-                    return model.propagate(
-                        state,
-                        dt,
-                        step.rest_start,
-                        step.rest_end,
-                        kernel=None if compiled else propagate_numpy,
-                    )
-
-                ref = _filterpy_ukf(x0, P0, estimator.config)
-                q = prepared.process_noise
-                ref.Q = np.diag(q) if q.ndim == 1 else q
-                t0 = time.perf_counter()
-                ref.predict(dt=prepared.duration, fx=fx)
-                ref.update(batch.z, R=np.diag(batch.variance), hx=hx)
-                times.append(1e3 * (time.perf_counter() - t0))
-                max_state_diff = max(
-                    max_state_diff, float(np.max(np.abs(ref.x - estimator.filter.x)))
-                )
+                ms, x = _filterpy_step(estimator, prepared, x0, P0, compiled)
+                times.append(ms)
+                max_state_diff = max(max_state_diff, float(np.max(np.abs(x - estimator.filter.x))))
     fast_med, ref_med = float(np.median(fast_ms)), float(np.median(filterpy_ms))
     numpy_med = float(np.median(filterpy_numpy_ms))
     d = run.description

@@ -655,13 +655,14 @@ def _stages(
     the generation that reaches its count, so the first may take a few candidates
     from the second.
 
-    The IMU windows' cost is narrow along the damping (off by 7 % it is 16 times its
-    least on the 3-bar bench), and CMA-ES needs many generations to learn such a
-    valley: within 400 evaluations on every window its mean was still far from it (the
-    damping 11 % off), while a quarter of the windows gives four times the generations
-    for the same time, and the last ones, on every window, settle the factors. The
-    quarter is every COARSE_STRIDE-th window of the bag, whatever the chunks (the
-    worker count); with under COARSE_LEAST_WINDOWS windows in all, one stage."""
+    The IMU windows' cost is narrow along the damping (off by 7 % the windows' mean
+    score is 3 times its least on the 3-bar bench, their median 16 times), and CMA-ES
+    needs many generations to learn such a valley: within 400 evaluations on every
+    window its mean was still far from it (the damping 11 % off), while a quarter of
+    the windows gives four times the generations for the same time, and the last ones,
+    on every window, settle the factors. The quarter is every COARSE_STRIDE-th window
+    of the bag, whatever the chunks (the worker count); with under COARSE_LEAST_WINDOWS
+    windows in all, one stage."""
     if sum(w.stop - w.start for _, w in chunks) < COARSE_LEAST_WINDOWS:
         return [(list(chunks), max_evaluations)]
     coarse = [(segments, slice(w.start + (-w.start) % COARSE_STRIDE, w.stop, COARSE_STRIDE))

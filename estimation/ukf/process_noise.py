@@ -58,8 +58,10 @@ class ProcessNoise:
         """(2,): position (m^2/s) and velocity (m^2/s^3) variance rates at rest."""
         self.driven = np.array([c.driven_position_noise * L, c.driven_velocity_noise * L]) ** 2
         """(2,): the same while driven."""
-        self.body = (c.body_position_noise * L) ** 2
-        """Position variance rate (m^2/s) shared by every node while driven."""
+        n = description.n_nodes
+        self.body = (c.body_position_noise * L) ** 2 * np.kron(np.ones((n, n)), np.eye(3))
+        """(3 n, 3 n): position variance rates (m^2/s) shared by every node while driven:
+        every node's x with every node's x, and so on, (1 1^T) kron I3."""
         self.driven_speed = c.driven_speed
         self.driven_hold = c.driven_hold
         self.node_scale = _node_noise_scale(c, description)
@@ -92,10 +94,8 @@ class ProcessNoise:
             scale = scale * np.where(heights <= self.contact_height, self.contact_scale, 1.0)
         per_axis = np.repeat(scale, 3) * dt
         q = np.concatenate([rates[0] * per_axis, rates[1] * per_axis])
-        if self.body == 0.0 or not driven:
+        if not driven or not self.body.any():
             return q
-        n = len(heights)
         Q = np.diag(q)
-        # Every node's x with every node's x, and so on: (1 1^T) kron I3.
-        Q[: 3 * n, : 3 * n] += self.body * dt * np.kron(np.ones((n, n)), np.eye(3))
+        Q[: len(self.body), : len(self.body)] += self.body * dt
         return Q
