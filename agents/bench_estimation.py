@@ -366,18 +366,17 @@ def _filterpy_step(
     P0: NDArray[np.float64],
     compiled: bool,
 ) -> tuple[float, NDArray[np.float64]]:
-    """filterpy's predict-update of ``prepared`` from mean ``x0`` (6 n,) and covariance
-    ``P0`` (6 n, 6 n), on the estimator's model (its compiled kernel, or plain numpy) and
-    measurements: milliseconds it took, and its mean (6 n,) after. filterpy calls fx and
+    """filterpy's predict-update of ``prepared`` from mean ``x0`` (d,) and covariance
+    ``P0`` (d, d), on the estimator's model (its compiled kernel, or plain numpy) and
+    measurements: milliseconds it took, and its mean (d,) after. filterpy calls fx and
     hx once per sigma point."""
-    model, measurements, batch = estimator.model, estimator.measurements, prepared.batch
+    measurements, batch = estimator.measurements, prepared.batch
 
     def hx(state: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.asarray(measurements.predict(batch, state[None])[0])
 
     def fx(state: NDArray[np.float64], dt: float) -> NDArray[np.float64]:
-        kernel = None if compiled else propagate_numpy
-        return model.propagate(state, dt, prepared.rest_start, prepared.rest_end, kernel=kernel)
+        return estimator.propagate(state, prepared, None if compiled else propagate_numpy)
 
     ref = _filterpy_ukf(x0, P0, estimator.config)
     q = prepared.process_noise
@@ -432,8 +431,8 @@ def bench_filter_speed(
     d = run.description
     return {
         "robot": d.name,
-        "state_dim": 6 * d.n_nodes,
-        "sigma_points": 12 * d.n_nodes + 1,
+        "state_dim": len(estimator.filter.x),
+        "sigma_points": 2 * len(estimator.filter.x) + 1,
         "steps_timed": len(fast_ms),
         "fast_filter_step_ms_median": round(fast_med, 3),
         "fast_estimator_update_ms_median": round(float(np.median(full_update_ms)), 3),

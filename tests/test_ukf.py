@@ -696,6 +696,36 @@ def test_measurement_model_agrees_with_the_simulated_sensors() -> None:
     np.testing.assert_allclose(ahrs_axis(np.array([0.0, 0.0, 0.0, 1.0])), [0.0, 0.0, 1.0])
 
 
+def test_the_ahrs_reads_axes_turned_back_by_the_frames_alignment() -> None:
+    """With the rotation phi from the AHRS's frame to the world's in the state, a
+    predicted axis is R(phi)^T u, u the rod's axis in the world (scipy's rotation as the
+    reference); no other row depends on phi."""
+    d = load_robot("three_bar")
+    n = d.n_nodes
+    measure = MeasurementModel(d, np.eye(3), 0.0, alignment=6 * n)
+    nodes = np.asarray(d.initial_positions, dtype=np.float64)
+    phis = np.random.default_rng(2).normal(0.0, 0.2, (4, 3))
+    phis[0] = 0.0
+    states = np.column_stack([np.tile(nodes.ravel(), (4, 1)), np.zeros((4, 3 * n)), phis])
+    batch = measure.batch(
+        axes={r: np.zeros(3) for r in range(d.n_rods)},
+        range_pairs=np.array([[0, n], [1, n + 2]]),
+        ranges=np.ones(2),
+        rod_variance=1e-6,
+        contact_nodes=np.array([0]),
+    )
+    predicted = measure.predict(batch, states)
+    axis_rows = batch.kind == RowKind.ROD_AXIS
+    world = rod_axes(nodes, d.rod_nodes)
+    for phi, row in zip(phis, predicted, strict=True):
+        read = Rotation.from_rotvec(phi).inv().apply(world)
+        np.testing.assert_allclose(row[axis_rows], read.ravel(), atol=1e-12)
+        np.testing.assert_array_equal(row[~axis_rows], predicted[0, ~axis_rows])
+    np.testing.assert_allclose(predicted[0, axis_rows], world.ravel(), atol=1e-15)
+    plain = MeasurementModel(d, np.eye(3), 0.0).predict(batch, states[:, : 6 * n])
+    np.testing.assert_array_equal(plain, np.tile(predicted[0], (4, 1)))
+
+
 # ----------------------------------------------------------------------------- consistency
 
 
@@ -978,7 +1008,7 @@ def _jump(est: UkfEstimator) -> None:
 def _runaway(est: UkfEstimator) -> None:
     """Every node estimated to move at 1 km/s."""
     n = est.description.n_nodes
-    est.filter.x[3 * n :] = 1e3
+    est.filter.x[3 * n : 6 * n] = 1e3
 
 
 @pytest.mark.parametrize("fault", [_jump, _runaway])
@@ -999,6 +1029,36 @@ def test_a_huge_error_is_recovered_from(rolling: Recording, fault: Any) -> None:
     step = rec.steps[k + 7]
     after = est.update(step.samples, step.command)
     assert after.healthy and _com_error(after, step.truth) < 0.05
+
+
+def test_a_reinitialisation_keeps_the_ahrs_frames_alignment(rolling: Recording) -> None:
+    """The floor does not move when the filter starts over: a re-initialisation starts
+    from the alignment it had (uncertain by its prior again), but not from one beyond 5
+    ``alignment_sigma`` (a diverged state's); a reset starts from zero."""
+    with pytest.raises(RuntimeError, match="call reset"):
+        _ = UkfEstimator().ahrs_alignment
+    rec, k = rolling, 12
+    n = rec.description.n_nodes
+    sigma = UkfConfig().alignment_sigma
+    assert sigma is not None
+    for phi, kept in ((np.array([0.02, -0.01, 0.03]), True), (np.array([0.3, 0.0, 0.0]), False)):
+        est = _rolling_estimator(rec, k)
+        est.filter.x[6 * n :] = phi
+        _jump(est)
+        for step in rec.steps[k : k + 7]:
+            if est.update(step.samples, step.command).reinitialised:
+                break
+        else:
+            pytest.fail("never re-initialised")
+        alignment = est.ahrs_alignment
+        if kept:  # the update before the re-initialisation moved it a little
+            np.testing.assert_allclose(alignment, phi, atol=0.01)
+        else:
+            np.testing.assert_array_equal(alignment, 0.0)
+        np.testing.assert_array_equal(est.filter.P[6 * n :, 6 * n :], sigma**2 * np.eye(3))
+    est.filter.x[6 * n :] = 0.05
+    est.reset(rec.description, rec.calibration, rec.start, rec.command, np.random.default_rng(0))
+    np.testing.assert_array_equal(est.ahrs_alignment, 0.0)
 
 
 @pytest.mark.parametrize("fault", [_jump, _runaway])

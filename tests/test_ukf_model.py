@@ -207,7 +207,7 @@ def test_process_noise_is_the_driven_one_while_motors_move_and_a_hold_after() ->
     """The motors moving faster than ``driven_speed`` switch Q to the driven noise, for
     ``driven_hold`` seconds after they stop; an encoder's jitter does not."""
     d = load_robot("three_bar")
-    config = UkfConfig(driven_hold=0.25)
+    config = UkfConfig(driven_hold=0.25, alignment_sigma=None)
     noise = ProcessNoise(config, d)
     n, L = d.n_nodes, d.characteristic_length
     rest = d.rest_lengths[d.actuated]
@@ -237,7 +237,7 @@ def test_body_noise_moves_every_node_alike_while_driven() -> None:
     (the robot as a whole off the model): the CoM's variance grows by it, a node's
     shape relative to the CoM not at all; only while driven; velocities untouched."""
     d = load_robot("three_bar")
-    config = UkfConfig(driven_hold=0.25, body_position_noise=0.05)
+    config = UkfConfig(driven_hold=0.25, body_position_noise=0.05, alignment_sigma=None)
     noise = ProcessNoise(config, d)
     n, L, dt = d.n_nodes, d.characteristic_length, 0.1
     rest, heights = d.rest_lengths[d.actuated], np.ones(n)
@@ -255,10 +255,35 @@ def test_body_noise_moves_every_node_alike_while_driven() -> None:
     for _ in range(3):  # still past the hold: the resting noise, no shared part
         resting = noise.covariance(dt, rest, rest, heights)
     assert resting.shape == (6 * n,)
-    plain = ProcessNoise(UkfConfig(body_position_noise=0.0), d)
+    plain = ProcessNoise(UkfConfig(body_position_noise=0.0, alignment_sigma=None), d)
     assert plain.covariance(dt, rest, rest + 0.01, heights).shape == (6 * n,)
     with pytest.raises(ValueError, match="body_position_noise must be non-negative, got -1"):
         UkfConfig(body_position_noise=-1.0)
+
+
+def test_the_ahrs_frames_alignment_walks_slowly_after_the_nodes() -> None:
+    """With the alignment in the state, Q ends with its random walk (3 rows, rad^2),
+    as the shared body noise's full matrix does; without the AHRS it is not there."""
+    d = load_robot("three_bar")
+    n, dt = d.n_nodes, 0.1
+    rest, heights = d.rest_lengths[d.actuated], np.ones(n)
+    config = UkfConfig(alignment_noise=0.002)
+    q = ProcessNoise(config, d).covariance(dt, rest, rest, heights)
+    plain_noise = ProcessNoise(replace(config, alignment_sigma=None), d)
+    plain = plain_noise.covariance(dt, rest, rest, heights)
+    np.testing.assert_array_equal(q[: 6 * n], plain)
+    np.testing.assert_allclose(q[6 * n :], 0.002**2 * dt)
+    body = replace(config, body_position_noise=0.02)
+    Q = ProcessNoise(body, d).covariance(dt, rest, rest + 0.01, heights)
+    assert Q.shape == (6 * n + 3, 6 * n + 3)
+    np.testing.assert_allclose(Q[6 * n :, 6 * n :], 0.002**2 * dt * np.eye(3))
+    np.testing.assert_array_equal(Q[6 * n :, : 6 * n], 0.0)
+    no_imu = ProcessNoise(replace(config, use_imu=False), d).covariance(dt, rest, rest, heights)
+    assert no_imu.shape == (6 * n,)
+    with pytest.raises(ValueError, match="alignment_sigma must be positive or None, got 0"):
+        UkfConfig(alignment_sigma=0.0)
+    with pytest.raises(ValueError, match="alignment_noise must be positive"):
+        UkfConfig(alignment_noise=-1.0)
 
 
 def test_a_stalled_links_backlog_is_not_fused_all_at_once() -> None:

@@ -3,13 +3,15 @@
 Each control period the filter predicts the spring-mass net forward with the motor
 encoders' rest lengths as its input, then corrects it with what arrived: rod axes from
 the AHRS, UWB ranges minus the pair offsets, cable lengths, and the rod-length and
-ground-contact pseudo-measurements. Before anything is kept, readings that are
-physically implausible are dropped and counted (:mod:`estimation.screen`), and a stream
-that gives nothing plausible for ``stream_failure_window`` is failed and not used until
-it has been plausible as long. Outliers are gated; a filter that diverges
-re-initialises itself from recent samples, never from what the gate rejected, and says
-so in the estimate. An estimate is unhealthy after ``max_prediction_time`` without a
-sensor row fused.
+ground-contact pseudo-measurements. Its state is the node positions and velocities
+(6 n,), then (with the AHRS in use) the rotation vector (3,) from the AHRS's frame to
+the world's, which a sloping floor or anchors surveyed off level make other than zero.
+Before anything is kept, readings that are physically implausible are dropped and
+counted (:mod:`estimation.screen`), and a stream that gives nothing plausible for
+``stream_failure_window`` is failed and not used until it has been plausible as long.
+Outliers are gated; a filter that diverges re-initialises itself from recent samples,
+never from what the gate rejected, and says so in the estimate. An estimate is unhealthy
+after ``max_prediction_time`` without a sensor row fused.
 
 The parts: :class:`~estimation.ukf.readings.Readings` keeps the samples,
 :class:`~estimation.ukf.watchdog.FilterWatchdog` judges the gate's verdicts (lock-out,
@@ -42,6 +44,7 @@ from estimation.ukf.spring_mass import SpringMassModel
 from estimation.ukf.watchdog import JUMPED, FilterWatchdog, Lockout
 from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.kinematics import center_of_mass
+from tensegrity_gym.model.lie import so3_exp
 from tensegrity_gym.model.samples import ns_to_seconds, seconds_to_ns
 
 if TYPE_CHECKING:
@@ -50,6 +53,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from estimation.ukf.readings import Round
+    from estimation.ukf.spring_mass import Kernel
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import Sample
@@ -77,8 +81,9 @@ class FilterStep:
     rest_end: NDArray[np.float64]
     """... and at the end, from the motor encoders (m), (m,)."""
     process_noise: NDArray[np.float64]
-    """Q for this step: its diagonal (6 n,), or the whole (6 n, 6 n) where nodes share
-    noise (``UkfConfig.body_position_noise``)."""
+    """Q for this step: its diagonal (d,), or the whole (d, d) where nodes share noise
+    (``UkfConfig.body_position_noise``); d is 6 n, or 6 n + 3 with the AHRS frame's
+    alignment."""
     batch: MeasurementBatch
     duration_ns: int = 0
     """``duration`` in whole nanoseconds, as the samples' clock counts it."""
@@ -169,6 +174,8 @@ class UkfEstimator:
     """
 
     needs_camera = False
+    filter: UnscentedKalmanFilter
+    """The filter over the state (made at reset, again at each re-initialisation)."""
 
     def __init__(self, config: UkfConfig | None = None) -> None:
         self.config = config if config is not None else UkfConfig()
@@ -252,10 +259,12 @@ class UkfEstimator:
     ) -> Estimate:
         c = self.config
         d = description
+        self._ready = False  # nothing of the last episode (its floor) carries over
         self.description = d
         self.model = SpringMassModel(d, c.model)
         anchors, self.offsets, self._module_allowed = _ranging(c, d, calibration)
-        self.measurements = MeasurementModel(d, anchors, d.sensors.uwb.module_offset)
+        alignment = 6 * d.n_nodes if c.estimates_alignment else None
+        self.measurements = MeasurementModel(d, anchors, d.sensors.uwb.module_offset, alignment)
         self.process_noise = ProcessNoise(c, d)
         rest = np.asarray(command, dtype=np.float64).copy()
         self.readings = self._readings(d, calibration, samples, rest)
@@ -305,9 +314,10 @@ class UkfEstimator:
         """Start over from ``nodes`` (n, 3), m, fitted to the samples just now."""
         if self._failed_fits > 1:
             log.info("UKF re-initialised after %d failed attempts", self._failed_fits)
+        alignment = self._kept_alignment()
         self._failed_fits = 0
         self._unplaced = False
-        self._start(nodes)
+        self._start(nodes, alignment)
         self.health.reinitialised(placed=True)
         return self._estimate()
 
@@ -318,10 +328,12 @@ class UkfEstimator:
             r.rounds, self._module_allowed, c.use_robot_ranges, self.description.n_nodes,
             for_fit=True,
         )  # fmt: skip
+        # The AHRS's axes turned into the world's by the alignment the filter keeps.
+        turn = so3_exp(self._kept_alignment())
         return fit_initial_shape(
             self.description,
             self.measurements,
-            axes=r.latest_axes if c.use_imu else {},
+            axes={rod: turn @ u for rod, u in r.latest_axes.items()} if c.use_imu else {},
             range_pairs=pairs,
             ranges=ranges - self.offsets[pairs[:, 0], pairs[:, 1]],
             range_sigma=c.range_sigma,
@@ -331,23 +343,58 @@ class UkfEstimator:
             contact_nodes=r.latest_contacts if c.use_contacts else None,
         ).node_positions
 
-    def _start(self, nodes: NDArray[np.float64]) -> None:
+    def _start(
+        self, nodes: NDArray[np.float64], alignment: NDArray[np.float64] | None = None
+    ) -> None:
+        """Start the filter at ``nodes`` (n, 3), m, at rest, and at ``alignment`` (3,),
+        rad (a re-initialisation: the floor has not moved; None: zero), uncertain by
+        its prior."""
         c = self.config
         n = self.description.n_nodes
         L = self.description.characteristic_length
-        x = np.concatenate([nodes.ravel(), np.zeros(3 * n)])
+        dim = 6 * n + 3 if c.estimates_alignment else 6 * n
+        x = np.zeros(dim)
+        x[: 3 * n] = nodes.ravel()
         # Where the robot is is uncertain, its shape much less so: independent errors
         # of centimetres would stretch the stiff rods, or sink the nodes into the
         # ground, of every sigma point and fling them apart in the first predict.
-        P = np.zeros((6 * n, 6 * n))
+        P = np.zeros((dim, dim))
         # The ground fixes the height: the robot as a whole is uncertain horizontally.
         P[: 3 * n, : 3 * n] = (c.initial_position_sigma * L) ** 2 * np.kron(
             np.ones((n, n)), np.diag([1.0, 1.0, 0.0])
         ) + (c.initial_shape_sigma * L) ** 2 * np.eye(3 * n)
-        P[3 * n :, 3 * n :] = (c.initial_velocity_sigma * L) ** 2 * np.eye(3 * n)
+        P[3 * n : 6 * n, 3 * n : 6 * n] = (c.initial_velocity_sigma * L) ** 2 * np.eye(3 * n)
+        if c.alignment_sigma is not None and dim > 6 * n:
+            P[6 * n :, 6 * n :] = c.alignment_sigma**2 * np.eye(3)
+            if alignment is not None:
+                x[6 * n :] = alignment
         self._initial_P = P
         self.filter = UnscentedKalmanFilter(x, P.copy(), c.sigma_points)
         self.watchdog = FilterWatchdog(c, self.description, self.measurements.rod_lengths)
+
+    def _kept_alignment(self) -> NDArray[np.float64]:
+        """(3,) rad: the alignment a re-initialisation starts from: the filter's, unless
+        there is none yet (a reset), the robot was never placed (the template shape's
+        orientation, not the floor's, would be in it) or it went beyond reach of its
+        prior (5 ``alignment_sigma``: a diverged state's), in which case zero."""
+        c = self.config
+        if not (self._ready and c.estimates_alignment) or self._unplaced:
+            return np.zeros(3)
+        phi = self.filter.x[6 * self.description.n_nodes :]
+        reach = 5.0 * (c.alignment_sigma or 0.0)
+        if not (np.all(np.isfinite(phi)) and float(np.linalg.norm(phi)) <= reach):
+            return np.zeros(3)
+        return np.array(phi)
+
+    @property
+    def ahrs_alignment(self) -> NDArray[np.float64]:
+        """(3,) rad: the rotation vector from the AHRS's frame to the world's as estimated
+        (``UkfConfig.alignment_sigma``); zeros where it is not estimated."""
+        if not self._ready:
+            raise RuntimeError("call reset() before reading ahrs_alignment")
+        x = self.filter.x
+        n6 = 6 * self.description.n_nodes
+        return x[n6:].copy() if len(x) > n6 else np.zeros(3)
 
     # ------------------------------------------------------------------ filtering
 
@@ -420,14 +467,23 @@ class UkfEstimator:
         q = self.process_noise.covariance(dt, rest_before, r.rest, heights)
         return FilterStep(dt, rest_before, r.rest.copy(), q, self._batch(rounds), dt_ns)
 
+    def propagate(
+        self, states: NDArray[np.float64], step: FilterStep, kernel: Kernel | None = None
+    ) -> NDArray[np.float64]:
+        """``states`` (S, d) or (d,) after the step's duration (a new array): the nodes by
+        the spring-mass model (``kernel``: another implementation of it), the AHRS
+        frame's alignment held."""
+        out = np.array(states, dtype=np.float64)
+        k = self.model.state_dim
+        out[..., :k] = self.model.propagate(
+            out[..., :k], step.duration, step.rest_start, step.rest_end, kernel=kernel
+        )
+        return out
+
     def apply(self, step: FilterStep, ukf: UnscentedKalmanFilter) -> UpdateResult:
         """Predict ``ukf`` over the step's duration, then update it with its batch."""
         if step.duration > 0:
-
-            def fx(sigmas: NDArray[np.float64]) -> NDArray[np.float64]:
-                return self.model.propagate(sigmas, step.duration, step.rest_start, step.rest_end)
-
-            ukf.predict(fx, step.process_noise)
+            ukf.predict(lambda sigmas: self.propagate(sigmas, step), step.process_noise)
         batch = step.batch
         return ukf.update(
             batch.z,
@@ -481,7 +537,7 @@ class UkfEstimator:
                 nodes = self.description.initial_positions
             else:
                 nodes = x[: 3 * self.description.n_nodes].reshape(-1, 3)
-            self._start(nodes)
+            self._start(nodes, self._kept_alignment())
             self.health.reinitialised(placed=False)
             return self._estimate()
         return self._placed(nodes)
@@ -491,14 +547,14 @@ class UkfEstimator:
         n = d.n_nodes
         x = self.filter.x
         nodes = x[: 3 * n].reshape(n, 3).copy()
-        velocities = x[3 * n :].reshape(n, 3).copy()
+        velocities = x[3 * n : 6 * n].reshape(n, 3).copy()
         estimate = Estimate(
             t=ns_to_seconds(self.readings.t_ns),
             node_positions=nodes,
             node_velocities=velocities,
             com=center_of_mass(nodes, d.node_masses),
             rest_lengths=self.readings.rest.copy(),
-            covariance=self.filter.P.copy(),
+            covariance=self.filter.P[: 6 * n, : 6 * n].copy(),
         )
         filled = self.health.fill(estimate)
         return replace(filled, healthy=False) if self._unplaced else filled

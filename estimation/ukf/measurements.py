@@ -3,7 +3,8 @@
 Five kinds of row, each a function of the node positions alone:
 
 - rod axis: the unit vector from a rod's first node to its second, as the AHRS
-  orientation of that rod gives it (its body z axis in the world), three rows a rod;
+  orientation of that rod gives it (its body z axis in the AHRS's frame: the world's
+  turned by the frames' alignment where the state carries it), three rows a rod;
 - UWB range: the distance between two modules plus the pair's offset o_ij
   (papers/000 eq. 6-7); a robot module sits ``module_offset`` from its endcap toward
   the rod centre, an anchor at its surveyed position;
@@ -22,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tensegrity_gym.model.lie import quat_rotate
+from tensegrity_gym.model.lie import quat_rotate, so3_exp
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -71,15 +72,26 @@ class MeasurementBatch:
 
 
 class MeasurementModel:
-    """Predicts a :class:`MeasurementBatch` for a batch of states (S, 6 n)."""
+    """Predicts a :class:`MeasurementBatch` for a batch of states (S, 6 n), or (S, 6 n + 3)
+    where the state carries the alignment of the AHRS's frame.
+
+    Args:
+        description: the robot (its rods, cables, endcaps).
+        anchors: (a, 3) the anchors' positions (m).
+        module_offset: how far a robot's UWB module sits from its endcap (m).
+        alignment: where the state's rotation vector (3,) from the AHRS's frame to the
+            world's starts; None: the two frames are one.
+    """
 
     def __init__(
         self,
         description: RobotDescription,
         anchors: NDArray[np.float64],
         module_offset: float,
+        alignment: int | None = None,
     ) -> None:
         d = description
+        self.alignment = alignment
         self.n_nodes = d.n_nodes
         self.rod_nodes = d.rod_nodes
         self.cable_nodes = d.cable_nodes
@@ -105,7 +117,7 @@ class MeasurementModel:
         return np.concatenate([robot, anchors], axis=1)
 
     def predict(self, batch: MeasurementBatch, states: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Predicted measurements (S, k) of states (S, 6 n), rows in ``batch`` order."""
+        """Predicted measurements (S, k) of states (S, d), rows in ``batch`` order."""
         S = states.shape[0]
         nodes = states[:, : 3 * self.n_nodes].reshape(S, self.n_nodes, 3)
         parts = []
@@ -113,6 +125,10 @@ class MeasurementModel:
             rn = self.rod_nodes[batch.axis_rods]
             u = nodes[:, rn[:, 1]] - nodes[:, rn[:, 0]]
             u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+            if self.alignment is not None:
+                # The AHRS reads the world's axis turned back into its own frame: R^T u.
+                R = so3_exp(states[:, self.alignment : self.alignment + 3])
+                u = np.einsum("sji,saj->sai", R, u)
             parts.append(u.reshape(S, -1))
         if batch.range_pairs.size:
             modules = self.module_positions(nodes)

@@ -62,6 +62,9 @@ class ProcessNoise:
         self.body = (c.body_position_noise * L) ** 2 * np.kron(np.ones((n, n)), np.eye(3))
         """(3 n, 3 n): position variance rates (m^2/s) shared by every node while driven:
         every node's x with every node's x, and so on, (1 1^T) kron I3."""
+        self.alignment = c.alignment_noise**2 if c.estimates_alignment else 0.0
+        """Variance rate (rad^2/s) of each component of the AHRS frame's alignment;
+        0 where the state does not carry it."""
         self.driven_speed = c.driven_speed
         self.driven_hold = c.driven_hold
         self.node_scale = _node_noise_scale(c, description)
@@ -79,9 +82,10 @@ class ProcessNoise:
     ) -> NDArray[np.float64]:
         """Q over a step of ``dt`` seconds in which the actuated rest lengths (m,) (m)
         went from ``rest_before`` to ``rest_after``, the nodes at estimated ``heights``
-        (n,) (m): its diagonal (6 n,), positions then velocities, where no noise is
-        shared between nodes; else the whole (6 n, 6 n), with the
-        ``body_position_noise`` that moves every node alike while the robot is driven."""
+        (n,) (m): its diagonal (6 n,), positions then velocities (then the alignment's
+        3 where the state carries it), where no noise is shared between nodes; else the
+        whole matrix, with the ``body_position_noise`` that moves every node alike while
+        the robot is driven."""
         moved = float(np.max(np.abs(rest_after - rest_before), initial=0.0))
         if dt > 0 and moved > self.driven_speed * dt:
             self.still_for = 0.0
@@ -94,6 +98,8 @@ class ProcessNoise:
             scale = scale * np.where(heights <= self.contact_height, self.contact_scale, 1.0)
         per_axis = np.repeat(scale, 3) * dt
         q = np.concatenate([rates[0] * per_axis, rates[1] * per_axis])
+        if self.alignment:
+            q = np.concatenate([q, np.full(3, self.alignment * dt)])
         if not driven or not self.body.any():
             return q
         Q = np.diag(q)

@@ -99,7 +99,7 @@ class FilterWatchdog:
         return nis
 
     def divergence(self, x: NDArray[np.float64], P: NDArray[np.float64]) -> str | None:
-        """Why the filter with state ``x`` (6 n,) and covariance ``P`` has diverged, or
+        """Why the filter with state ``x`` (d,) and covariance ``P`` (d, d) has diverged, or
         None."""
         c = self.config
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
