@@ -414,9 +414,10 @@ def _estimate_one(
             metrics.update(
                 ate_rmse_m=round(traj.ate_rmse, 4),
                 rpe_rmse_m=round(traj.rpe_rmse, 4),
-                final_drift_m=round(traj.final_drift, 4),
-                path_length_m=round(traj.path_length, 4),
-                drift_percent=round(traj.drift_percentage, 2),
+                # The CoM's: not the bench's drift_percent (papers/002's, rod 0's centre).
+                com_final_error_m=round(traj.final_drift, 4),
+                com_path_length_m=round(traj.path_length, 4),
+                com_drift_percent=round(traj.drift_percentage, 2),
             )
         errors = np.linalg.norm(com[keep] - true_com, axis=-1)
         node_rms = np.sqrt(np.mean(np.sum((nodes[keep] - true_nodes) ** 2, axis=-1), axis=-1))

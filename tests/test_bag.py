@@ -298,8 +298,8 @@ def test_record_and_estimate_commands(tmp_path: Path) -> None:
     for key in (
         "ate_rmse_m",
         "rpe_rmse_m",
-        "final_drift_m",
-        "drift_percent",
+        "com_final_error_m",
+        "com_drift_percent",
         "rods_within_2cm_5deg",
     ):
         assert key in metrics

@@ -503,17 +503,40 @@ def _node_pair(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tupl
 def _sensors(r: _Reader, doc: Any, rods: list[Rod]) -> SensorSuite:
     p = "sensors"
     s = r.mapping(doc, p, {"imu", "encoder", "cable_length", "uwb", "contact", "camera"})
+    imu_cfg = _imu(r, s["imu"], f"{p}.imu", rods)
+    enc = r.mapping(s["encoder"], f"{p}.encoder", {"rate", "resolution"})
+    enc_cfg = EncoderConfig(
+        rate=r.number(enc["rate"], f"{p}.encoder.rate", positive=True),
+        resolution=r.number(enc["resolution"], f"{p}.encoder.resolution", non_negative=True),
+    )
+    cl = r.mapping(s["cable_length"], f"{p}.cable_length", {"rate", "noise", "slack_bias"})
+    cl_cfg = CableLengthConfig(
+        rate=r.number(cl["rate"], f"{p}.cable_length.rate", positive=True),
+        noise=r.number(cl["noise"], f"{p}.cable_length.noise", non_negative=True),
+        slack_bias=r.number(cl["slack_bias"], f"{p}.cable_length.slack_bias", non_negative=True),
+    )
+    uwb_cfg = _uwb(r, s["uwb"], f"{p}.uwb")
+    ct = r.mapping(s["contact"], f"{p}.contact", {"rate", "threshold"})
+    ct_cfg = ContactConfig(
+        rate=r.number(ct["rate"], f"{p}.contact.rate", positive=True),
+        threshold=r.number(ct["threshold"], f"{p}.contact.threshold", non_negative=True),
+    )
+    cam_cfg = _camera(r, s["camera"], f"{p}.camera")
+    return SensorSuite(imu_cfg, enc_cfg, cl_cfg, uwb_cfg, ct_cfg, cam_cfg)
+
+
+def _imu(r: _Reader, doc: Any, q: str, rods: list[Rod]) -> ImuConfig:
+    """The IMU section at path ``q``; rods named by ``rods``' names."""
     imu = r.mapping(
-        s["imu"],
-        f"{p}.imu",
+        doc,
+        q,
         {"rate", "mount", "accel_noise", "gyro_noise", "accel_bias", "gyro_bias", "mag_noise",
          "magnetic_field", "ahrs_gain"},
         frozenset({"accel_full_scale", "gyro_full_scale", "rods"}),
     )  # fmt: skip
     if imu["mount"] != "rod_centre":
-        raise r.fail(f"{p}.imu.mount", f"only 'rod_centre' is supported, got {imu['mount']!r}")
-    q = f"{p}.imu"
-    imu_cfg = ImuConfig(
+        raise r.fail(f"{q}.mount", f"only 'rod_centre' is supported, got {imu['mount']!r}")
+    return ImuConfig(
         rate=r.number(imu["rate"], f"{q}.rate", positive=True),
         mount=imu["mount"],
         accel_noise=r.number(imu["accel_noise"], f"{q}.accel_noise", non_negative=True),
@@ -532,20 +555,12 @@ def _sensors(r: _Reader, doc: Any, rods: list[Rod]) -> SensorSuite:
             r, imu["rods"], f"{q}.rods", {rod.name: k for k, rod in enumerate(rods)}
         ),
     )  # fmt: skip
-    enc = r.mapping(s["encoder"], f"{p}.encoder", {"rate", "resolution"})
-    enc_cfg = EncoderConfig(
-        rate=r.number(enc["rate"], f"{p}.encoder.rate", positive=True),
-        resolution=r.number(enc["resolution"], f"{p}.encoder.resolution", non_negative=True),
-    )
-    cl = r.mapping(s["cable_length"], f"{p}.cable_length", {"rate", "noise", "slack_bias"})
-    cl_cfg = CableLengthConfig(
-        rate=r.number(cl["rate"], f"{p}.cable_length.rate", positive=True),
-        noise=r.number(cl["noise"], f"{p}.cable_length.noise", non_negative=True),
-        slack_bias=r.number(cl["slack_bias"], f"{p}.cable_length.slack_bias", non_negative=True),
-    )
-    q = f"{p}.uwb"
+
+
+def _uwb(r: _Reader, doc: Any, q: str) -> UwbConfig:
+    """The UWB section at path ``q``."""
     uwb = r.mapping(
-        s["uwb"],
+        doc,
         q,
         {"rate", "packet_spacing", "module_offset", "timestamp_noise", "clock_drift_ppm",
          "offset_mean", "offset_std", "reject_fraction", "anchors"},
@@ -570,14 +585,13 @@ def _sensors(r: _Reader, doc: Any, rods: list[Rod]) -> SensorSuite:
     )
     if 1.0 / uwb_cfg.rate < uwb_cfg.packet_spacing:
         raise r.fail(f"{q}.packet_spacing", "longer than one broadcast round")
-    ct = r.mapping(s["contact"], f"{p}.contact", {"rate", "threshold"})
-    ct_cfg = ContactConfig(
-        rate=r.number(ct["rate"], f"{p}.contact.rate", positive=True),
-        threshold=r.number(ct["threshold"], f"{p}.contact.threshold", non_negative=True),
-    )
-    q = f"{p}.camera"
+    return uwb_cfg
+
+
+def _camera(r: _Reader, doc: Any, q: str) -> CameraConfig:
+    """The RGB-D camera section at path ``q``."""
     cam = r.mapping(
-        s["camera"],
+        doc,
         q,
         {"position", "target", "up", "width", "height", "vertical_fov", "near", "far", "rate",
          "depth_noise", "depth_noise_quadratic"},
@@ -602,7 +616,7 @@ def _sensors(r: _Reader, doc: Any, rods: list[Rod]) -> SensorSuite:
     )
     if cam_cfg.far <= cam_cfg.near:
         raise r.fail(f"{q}.far", "must be greater than near")
-    return SensorSuite(imu_cfg, enc_cfg, cl_cfg, uwb_cfg, ct_cfg, cam_cfg)
+    return cam_cfg
 
 
 def _names(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[int, ...]:
