@@ -43,7 +43,7 @@ from estimation.ukf import (
 from estimation.ukf import estimator as estimator_module
 from estimation.ukf.estimator import NOT_PLACED
 from estimation.ukf.initialise import InitialisationError
-from estimation.ukf.measurements import MeasurementModel, RowKind, ahrs_axis
+from estimation.ukf.measurements import MeasurementModel, RowKind, ahrs_axis, turn_back
 from estimation.ukf.sigma_points import CholeskyError, robust_cholesky, sigma_points
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.kinematics import member_lengths, rod_axes
@@ -724,6 +724,13 @@ def test_the_ahrs_reads_axes_turned_back_by_the_frames_alignment() -> None:
     np.testing.assert_allclose(predicted[0, axis_rows], world.ravel(), atol=1e-15)
     plain = MeasurementModel(d, np.eye(3), 0.0).predict(batch, states[:, : 6 * n])
     np.testing.assert_array_equal(plain, np.tile(predicted[0], (4, 1)))
+    # Rodrigues through sinc: exact at zero, at a hair's breadth from it and at 2 rad.
+    rng = np.random.default_rng(5)
+    for scale in (0.0, 1e-9, 2.0):
+        phi, u = scale * rng.normal(size=(6, 3)), rng.normal(size=(6, 4, 3))
+        pairs = zip(phi, u, strict=True)
+        read = np.stack([Rotation.from_rotvec(p).inv().apply(v) for p, v in pairs])
+        np.testing.assert_allclose(turn_back(phi, u), read, rtol=0, atol=1e-14)
 
 
 # ----------------------------------------------------------------------------- consistency
