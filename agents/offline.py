@@ -399,40 +399,9 @@ def _estimate_one(
         "finite": bool(finite.all()),
         **calibration_against_truth(backend),
     }
-    has_truth = [x is not None for x in truths]
-    true_com = None
-    if any(has_truth):
-        keep = [i for i, ok in enumerate(has_truth) if ok and finite[i]]
-        true_nodes = np.array([cast("GroundTruth", truths[i]).node_positions for i in keep])
-        true_com = np.array([cast("GroundTruth", truths[i]).com for i in keep])
-        true_poses = body_poses(true_nodes, d.rod_nodes, d.node_masses)
-        write_tum(out / "truth.tum", t[keep], true_poses)
-        metrics.update(estimation_errors(d, estimates, truths, settle))
-        if len(keep) > 2:
-            est_poses = body_poses(nodes[keep], d.rod_nodes, d.node_masses)
-            traj = trajectory_errors(est_poses, true_poses)
-            metrics.update(
-                ate_rmse_m=round(traj.ate_rmse, 4),
-                rpe_rmse_m=round(traj.rpe_rmse, 4),
-                # The CoM's: not the bench's drift_percent (papers/002's, rod 0's centre).
-                com_final_error_m=round(traj.final_drift, 4),
-                com_path_length_m=round(traj.path_length, 4),
-                com_drift_percent=round(traj.drift_percentage, 2),
-            )
-        errors = np.linalg.norm(com[keep] - true_com, axis=-1)
-        node_rms = np.sqrt(np.mean(np.sum((nodes[keep] - true_nodes) ** 2, axis=-1), axis=-1))
-        marks = t[[i for i in keep if estimates[i].reinitialised]]
-        plot_errors(
-            t[keep] - t[0],
-            {"CoM error": errors, "node RMS error": node_rms},
-            out / "error.png",
-            f"{path.name}: {estimator} against the ground truth",
-            marks - t[0],
-        )
-        true_com_path = true_com
-    else:
-        true_com_path = None
-    plot_com_paths(true_com_path, com[finite], out / "com_path.png", f"{path.name} ({estimator})")
+    true_com = _against_truth(estimates, truths, d, finite, metrics, out, settle,
+                              f"{path.name}: {estimator} against the ground truth")  # fmt: skip
+    plot_com_paths(true_com, com[finite], out / "com_path.png", f"{path.name} ({estimator})")
     np.savez_compressed(
         out / "estimates.npz",
         t=t,
@@ -443,3 +412,52 @@ def _estimate_one(
     )
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2) + "\n")
     return metrics
+
+
+def _against_truth(
+    estimates: list[Estimate],
+    truths: list[GroundTruth | None],
+    d: RobotDescription,
+    finite: NDArray[np.bool_],
+    metrics: dict[str, Any],
+    out: Path,
+    settle: float,
+    title: str,
+) -> NDArray[np.float64] | None:
+    """Where the bag has ground truth: its errors into ``metrics``, ``truth.tum`` and
+    ``error.png`` into ``out``; the true CoM path (k, 3) of the finite steps with truth,
+    or None without truth."""
+    has_truth = [x is not None for x in truths]
+    if not any(has_truth):
+        return None
+    t = np.array([e.t for e in estimates])
+    nodes = np.array([e.node_positions for e in estimates])
+    com = np.array([e.com for e in estimates])
+    keep = [i for i, ok in enumerate(has_truth) if ok and finite[i]]
+    true_nodes = np.array([cast("GroundTruth", truths[i]).node_positions for i in keep])
+    true_com = np.array([cast("GroundTruth", truths[i]).com for i in keep])
+    true_poses = body_poses(true_nodes, d.rod_nodes, d.node_masses)
+    write_tum(out / "truth.tum", t[keep], true_poses)
+    metrics.update(estimation_errors(d, estimates, truths, settle))
+    if len(keep) > 2:
+        est_poses = body_poses(nodes[keep], d.rod_nodes, d.node_masses)
+        traj = trajectory_errors(est_poses, true_poses)
+        metrics.update(
+            ate_rmse_m=round(traj.ate_rmse, 4),
+            rpe_rmse_m=round(traj.rpe_rmse, 4),
+            # The CoM's: not the bench's drift_percent (papers/002's, rod 0's centre).
+            com_final_error_m=round(traj.final_drift, 4),
+            com_path_length_m=round(traj.path_length, 4),
+            com_drift_percent=round(traj.drift_percentage, 2),
+        )
+    errors = np.linalg.norm(com[keep] - true_com, axis=-1)
+    node_rms = np.sqrt(np.mean(np.sum((nodes[keep] - true_nodes) ** 2, axis=-1), axis=-1))
+    marks = t[[i for i in keep if estimates[i].reinitialised]]
+    plot_errors(
+        t[keep] - t[0],
+        {"CoM error": errors, "node RMS error": node_rms},
+        out / "error.png",
+        title,
+        marks - t[0],
+    )
+    return true_com

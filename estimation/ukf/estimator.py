@@ -473,12 +473,13 @@ class UkfEstimator:
         """``states`` (S, d) or (d,) after the step's duration (a new array): the nodes by
         the spring-mass model (``kernel``: another implementation of it), the AHRS
         frame's alignment held."""
-        out = np.array(states, dtype=np.float64)
         k = self.model.state_dim
-        out[..., :k] = self.model.propagate(
-            out[..., :k], step.duration, step.rest_start, step.rest_end, kernel=kernel
-        )
-        return out
+        nodes = self.model.propagate(
+            states[..., :k], step.duration, step.rest_start, step.rest_end, kernel=kernel
+        )  # a new array
+        if states.shape[-1] == k:
+            return nodes
+        return np.concatenate([nodes, states[..., k:]], axis=-1)
 
     def apply(self, step: FilterStep, ukf: UnscentedKalmanFilter) -> UpdateResult:
         """Predict ``ukf`` over the step's duration, then update it with its batch."""
