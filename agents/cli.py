@@ -112,13 +112,15 @@ def _user_errors() -> tuple[type[BaseException], ...]:
 def _demo(args: argparse.Namespace) -> int:
     from agents.main_job import RESIDUAL_GAIT, run_main_job, run_main_job_seeds
 
-    budget = {
-        "ukf_timesteps": args.timesteps,
-        "oracle_timesteps": args.oracle_timesteps,
+    budget: dict[str, Any] = {
         "episodes": args.episodes,
         "progress_bar": not args.no_progress,
         "residual_gait": None if args.absolute_actions else RESIDUAL_GAIT,
     }
+    for key, given in (("ukf_timesteps", args.timesteps),
+                       ("oracle_timesteps", args.oracle_timesteps)):  # fmt: skip
+        if given is not None:  # else run_main_job's own: the demo's budget
+            budget[key] = given
     if args.seeds:
         summary = run_main_job_seeds(Path(args.out), args.seeds, **budget)
         sys.stdout.write(f"over seeds {summary['seeds']}: {Path(args.out) / 'seeds.md'}\n")
@@ -133,10 +135,11 @@ def _demo(args: argparse.Namespace) -> int:
     report = run_main_job(Path(args.out), seed=args.seed, **budget)
     sys.stdout.write(f"report: {Path(args.out) / 'report' / 'report.md'}\n")
     for name, check in report["checks"].items():
-        gait = check.get("progress_vs_gait")
+        gait, own_way = check.get("progress_vs_gait"), check.get("progress_vs_gait_distance")
         sys.stdout.write(
             f"  {name}: {check['progress_vs_random']}x a random policy's progress"
             + (f", {gait:.0%} of the scripted gait's" if gait is not None else "")
+            + (f" ({own_way:.0%} of its distance its own way)" if own_way is not None else "")
             + f", {check['rolls_per_episode']} rolls per episode (under {check['condition']})\n"
         )
     sys.stdout.write(f"  wall time per stage (s): {report['timing_s']}\n")
@@ -443,10 +446,13 @@ def _add_demo(sub: Any) -> None:
         help="the main job: train PPO with the UKF in the loop (and on ground truth), "
         "evaluate, write the report",
     )
-    demo.add_argument("--timesteps", type=_positive_int, default=120_000, help="UKF training steps")
     demo.add_argument(
-        "--oracle-timesteps", type=_count, default=80_000, help="ground-truth training (0: skip)"
+        "--timesteps", type=_positive_int, help="UKF training steps (default: the demo's budget)"
     )
+    demo.add_argument(
+        "--oracle-timesteps", type=_count,
+        help="ground-truth training steps (0: skip; default: the demo's budget)",
+    )  # fmt: skip
     demo.add_argument(
         "--episodes", type=_positive_int, default=5, help="evaluation episodes per row"
     )

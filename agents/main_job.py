@@ -33,8 +33,8 @@ goal in 30 s with at least 2 rolls an episode on every seed; absolute targets ma
 def run_main_job(
     out: Path,
     *,
-    ukf_timesteps: int = 120_000,
-    oracle_timesteps: int = 80_000,
+    ukf_timesteps: int = 40_960,
+    oracle_timesteps: int = 20_480,
     episodes: int = 5,
     seed: int = 0,
     progress_bar: bool = True,
@@ -124,7 +124,13 @@ def against_reference(
     return lines
 
 
-SEED_FIGURES = ("progress_mean_m", "rolls_per_episode", "success_rate", "com_error_mean_m")
+SEED_FIGURES = (
+    "progress_mean_m",
+    "distance_mean_m",
+    "rolls_per_episode",
+    "success_rate",
+    "com_error_mean_m",
+)
 """The per-policy, per-condition figures :func:`across_seeds` gathers."""
 
 
@@ -160,6 +166,7 @@ def run_main_job_seeds(out: Path, seeds: Sequence[int], **kwargs: Any) -> dict[s
     summary = across_seeds(reports)
     summary["settings"] = reports[seeds[0]]["settings"]
     summary["timing_s"] = {s: r["timing_s"] for s, r in reports.items()}
+    summary["checks"] = {s: r["checks"] for s, r in reports.items()}
     out.mkdir(parents=True, exist_ok=True)
     (out / "seeds.json").write_text(json.dumps(summary, indent=2) + "\n")
     (out / "seeds.md").write_text(_seeds_markdown(summary))
@@ -174,8 +181,9 @@ def _seeds_markdown(summary: dict[str, Any]) -> str:
         "Mean ± standard deviation over the seeds [least, greatest]; each seed's report "
         "is in its `seed_<s>/report` folder.",
         "",
-        "| policy | condition | progress (m) | rolls / ep. | success | CoM error (cm) |",
-        "|---|---|---|---|---|---|",
+        "| policy | condition | progress (m) | distance (m) | rolls / ep. | success "
+        "| CoM error (cm) |",
+        "|---|---|---|---|---|---|---|",
     ]
 
     def cell(f: dict[str, float], scale: float = 1.0) -> str:
@@ -188,7 +196,32 @@ def _seeds_markdown(summary: dict[str, Any]) -> str:
         for cond, f in by_condition.items():
             lines.append(
                 f"| {policy} | {cond} | {cell(f['progress_mean_m'])} "
+                f"| {cell(f['distance_mean_m'])} "
                 f"| {cell(f['rolls_per_episode'])} | {cell(f['success_rate'])} "
                 f"| {cell(f['com_error_mean_m'], 100.0)} |"
             )
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _seed_checks(summary.get("checks", {}))) + "\n"
+
+
+def _seed_checks(checks: dict[int, dict[str, Any]]) -> list[str]:
+    """Markdown lines: each seed's trained policies against the targets (the report's
+    checks: rolls per episode, share of the scripted gait's progress)."""
+    if not checks:
+        return []
+    lines = ["", "## The targets, seed by seed", ""]
+    for seed, by_policy in checks.items():
+        for name, c in by_policy.items():
+            share = c.get("progress_vs_gait")
+            lines.append(
+                f"- seed {seed}, **{name}** under `{c['condition']}`: "
+                f"{c['rolls_per_episode']} rolls per episode "
+                f"({'met' if c['rolls_target_met'] else 'NOT met'})"
+                + (f", {share:.0%} of the scripted gait's progress" if share is not None else "")
+                + (
+                    f", {c['progress_vs_gait_distance']:.0%} of its distance its own way"
+                    if "progress_vs_gait_distance" in c
+                    else ""
+                )
+                + "."
+            )
+    return lines

@@ -47,6 +47,34 @@ def test_a_zero_correction_is_the_gait_bit_for_bit() -> None:
     assert not np.allclose(_com_after(against, lambda obs: full), on_its_own)
 
 
+def _rewards(env: gym.Env, act, steps: int = 30) -> np.ndarray:  # type: ignore[no-untyped-def, type-arg]
+    obs, _ = env.reset(seed=4)
+    rewards = []
+    for _ in range(steps):
+        obs, reward, _, _, _ = env.step(act(obs))
+        rewards.append(reward)
+    env.close()
+    return np.array(rewards)
+
+
+def test_the_control_cost_is_the_corrections_not_the_gaits() -> None:
+    """The gait's own commands are free: a zero correction earns the gait's progress
+    reward alone, and a correction pays ``ctrl_cost`` times its mean square."""
+    plain = gym.make(THREE_BAR, estimator="oracle", ctrl_cost=0.0)
+    inner = plain.unwrapped
+    gait = FaceGait(inner.backend.description, inner.task)  # type: ignore[attr-defined]
+    free = _rewards(plain, gait)
+    residual = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, ctrl_cost=0.05)
+    zeros = np.zeros(residual.action_space.shape, dtype=np.float32)
+    assert np.array_equal(_rewards(residual, lambda obs: zeros), free)
+    assert np.abs(free).sum() > 0  # the gait's rolling earned (or lost) progress
+    half = np.full(residual.action_space.shape, 0.5, dtype=np.float32)
+    charged = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, ctrl_cost=0.05)
+    uncharged = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, ctrl_cost=0.0)
+    difference = _rewards(uncharged, lambda obs: half) - _rewards(charged, lambda obs: half)
+    np.testing.assert_allclose(difference, 0.05 * 0.25, rtol=1e-6)
+
+
 def test_the_residual_env_passes_gymnasiums_checks() -> None:
     env = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5)
     check_env(env.unwrapped, skip_render_check=True)

@@ -270,11 +270,18 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
     assert check["condition"] == "oracle" and "progress_vs_random" in check
     trained = report["results"]["trained on oracle"]["oracle"]["progress_mean_m"]
     assert check["progress_vs_gait"] == round(trained / gait["oracle"]["progress_mean_m"], 2)
+    # The gait rolled at least as far as it progressed toward the goal.
+    assert gait["oracle"]["distance_mean_m"] >= abs(gait["oracle"]["progress_mean_m"]) - 1e-3
+    assert check["gait_distance_m"] == gait["oracle"]["distance_mean_m"]
+    assert check["progress_vs_gait_distance"] == round(
+        trained / gait["oracle"]["distance_mean_m"], 2
+    )
     assert _gait_share({**check, "gait_progress_m": -0.5, "progress_vs_gait": None}).startswith(
-        "; the scripted gait made no progress toward the goal (-0.50 m)"
+        "; the scripted gait made no progress toward the goal (-0.50 m), and "
     )
     text = (tmp_path / "report" / "report.md").read_text()
     assert "of the scripted gait's progress" in text and "| scripted gait | oracle |" in text
+    assert "of the distance the gait rolls its own way" in text
     assert "| trained on oracle | ukf_4_anchors |" in text and "![CoM paths]" in text
     for name in ("com_paths.png", "estimation_error.png", "training.png", "report.json"):
         assert (tmp_path / "report" / name).stat().st_size > 0
@@ -315,6 +322,7 @@ def test_figures_across_seeds_give_mean_spread_and_each_seed() -> None:
     def report(progress: float, rolls: float) -> dict[str, Any]:
         row = {
             "progress_mean_m": progress,
+            "distance_mean_m": 2 * progress,
             "rolls_per_episode": rolls,
             "success_rate": 0.5,
             "com_error_mean_m": 0.01,
@@ -327,6 +335,8 @@ def test_figures_across_seeds_give_mean_spread_and_each_seed() -> None:
     assert progress == {"mean": 0.2, "std": 0.1, "min": 0.1, "max": 0.3, "per_seed": [0.1, 0.3]}
     rolls = summary["results"]["trained on ukf"]["oracle"]["rolls_per_episode"]
     assert rolls["mean"] == 2.0 and rolls["per_seed"] == [3.0, 1.0]
+    distance = summary["results"]["trained on ukf"]["ukf"]["distance_mean_m"]
+    assert distance["per_seed"] == [0.2, 0.6]
     with pytest.raises(ValueError, match="distinct seeds"):
         run_main_job_seeds(Path("unused"), [1, 1])
 
@@ -376,6 +386,7 @@ def test_the_demo_over_two_seeds_writes_each_report_and_the_summary(tmp_path: Pa
     assert len(gait["per_seed"]) == 2 and gait["min"] <= gait["mean"] <= gait["max"]
     text = (tmp_path / "seeds.md").read_text()
     assert "| scripted gait | ukf |" in text and "±" in text
+    assert "- seed 1, **trained on ukf** under `ukf`: " in text and "rolls per episode" in text
 
 
 def test_a_policy_trained_in_randomised_worlds_is_named_so(tmp_path: Path) -> None:
@@ -395,3 +406,25 @@ def test_a_policy_trained_in_randomised_worlds_is_named_so(tmp_path: Path) -> No
     assert policy.name == "trained on oracle in mild worlds"
     assert policy.env_kwargs == {}  # the condition says which worlds it is evaluated in
     assert load_policy(out, "mine").name == "mine"
+
+
+def test_the_demo_runs_on_its_own_budget_unless_told(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import agents.main_job
+    from agents.cli import main
+
+    given: list[dict[str, Any]] = []
+
+    def fake(out: Path, **kwargs: Any) -> dict[str, Any]:
+        given.append(kwargs)
+        return {"checks": {}, "timing_s": {}}
+
+    monkeypatch.setattr(agents.main_job, "run_main_job", fake)
+    assert main(["demo", "--out", str(tmp_path), "--no-progress"]) == 0
+    assert "ukf_timesteps" not in given[0] and "oracle_timesteps" not in given[0]
+    assert given[0]["residual_gait"] == agents.main_job.RESIDUAL_GAIT
+    budget = ["--timesteps", "7", "--oracle-timesteps", "0"]
+    assert main(["demo", "--out", str(tmp_path), *budget]) == 0
+    assert given[1]["ukf_timesteps"] == 7 and given[1]["oracle_timesteps"] == 0
+    assert "wall time per stage" in capsys.readouterr().out

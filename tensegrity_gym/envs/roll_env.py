@@ -240,7 +240,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         if self._estimate is None or self._observation is None:
             raise RuntimeError("call reset() before step() (and again after a reset that failed)")
-        a = self._check_action(action)
+        a = charged = self._check_action(action)
         if self.action_base is not None:  # the policy corrects the scripted controller
             base = np.asarray(self.action_base(self._observation), dtype=np.float64)
             a = np.clip(base + self.residual_scale * a, -1.0, 1.0)
@@ -253,7 +253,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             return self._observation, 0.0, False, True, info
         if result.command is not None:  # e.g. a replayed log drives itself
             targets = np.asarray(result.command, dtype=np.float64)
-            a = self.targets_to_action(targets).astype(np.float64)
+            a = charged = self.targets_to_action(targets).astype(np.float64)
         previous = self._estimate
         estimate = self.estimator.update(result.samples, targets)
         self._estimate = estimate
@@ -261,7 +261,10 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         rejected = self.task.implausible_step(previous, estimate)
         reward = 0.0
         if rejected is None:
-            reward = self.task.reward(previous, estimate, np.clip(a, -1.0, 1.0).astype(np.float32))
+            # With residual actions the control cost is the correction's: the gait's own
+            # commands are free, so that the cost does not teach the policy to stop rolling.
+            cost_of = np.clip(charged, -1.0, 1.0).astype(np.float32)
+            reward = self.task.reward(previous, estimate, cost_of)
             if not np.isfinite(reward):
                 reward, rejected = 0.0, f"the reward was {reward}"
         self.task.advance(previous, estimate)  # e.g. a reached goal is replaced
