@@ -142,8 +142,8 @@ def write_report(
     env_id = env_ids.pop()
     names = [p.name for p in policies]
     if len(set(names)) < len(names):  # two runs trained on the same estimator
-        for p, d in zip(policies, run_dirs, strict=True):
-            p.name = f"{p.name} ({d.name})"
+        for p, label in zip(policies, _distinct_labels(run_dirs), strict=True):
+            p.name = f"{p.name} ({label})"
     trained = list(policies)
     if include_random:
         policies.append(random_policy(env_id, seed))
@@ -178,6 +178,21 @@ def write_report(
     (out / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     (out / "report.md").write_text(_markdown(report, bool(curves)))
     return report
+
+
+def _distinct_labels(run_dirs: Sequence[Path]) -> list[str]:
+    """The shortest trailing parts of the run folders' paths that tell them apart
+    (``seed_0/ppo_ukf`` and ``seed_1/ppo_ukf``, not ``ppo_ukf`` twice)."""
+    parts = [d.resolve().parts for d in run_dirs]
+    labels = []
+    for d, mine in zip(run_dirs, parts, strict=True):
+        others = [p for p in parts if p is not mine]
+        if mine in others:
+            raise ValueError(f"evaluate: the run {d} is given twice")
+        depth = next(k for k in range(1, len(mine) + 1)
+                     if all(p[-k:] != mine[-k:] for p in others))  # fmt: skip
+        labels.append("/".join(mine[-depth:]))
+    return labels
 
 
 def _checks(

@@ -428,3 +428,12 @@ def test_the_demo_runs_on_its_own_budget_unless_told(
     assert main(["demo", "--out", str(tmp_path), *budget]) == 0
     assert given[1]["ukf_timesteps"] == 7 and given[1]["oracle_timesteps"] == 0
     assert "wall time per stage" in capsys.readouterr().out
+
+
+def test_runs_of_the_same_name_are_told_apart_by_their_folders(tmp_path: Path) -> None:
+    from agents.report import _distinct_labels
+
+    runs = [tmp_path / "seed_0" / "ppo_ukf", tmp_path / "seed_1" / "ppo_ukf", tmp_path / "x"]
+    assert _distinct_labels(runs) == ["seed_0/ppo_ukf", "seed_1/ppo_ukf", "x"]
+    with pytest.raises(ValueError, match=r"the run .*seed_0/ppo_ukf is given twice"):
+        _distinct_labels([runs[0], runs[1], runs[0]])
