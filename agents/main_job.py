@@ -218,6 +218,11 @@ def _seed_checks(checks: dict[int, dict[str, Any]]) -> list[str]:
                 f"({'met' if c['rolls_target_met'] else 'NOT met'})"
                 + (f", {share:.0%} of the scripted gait's progress" if share is not None else "")
                 + (
+                    f" ({'met' if c['gait_target_met'] else 'NOT met'})"
+                    if "gait_target_met" in c
+                    else ""
+                )
+                + (
                     f", {c['progress_vs_gait_distance']:.0%} of its distance its own way"
                     if "progress_vs_gait_distance" in c
                     else ""

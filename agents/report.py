@@ -36,6 +36,9 @@ log = logging.getLogger(__name__)
 
 TARGET_PROGRESS_RATIO = 3.0
 TARGET_ROLLS = 1.0
+TARGET_GAIT_SHARE = 0.5
+"""A trained policy's progress toward the goal, at least this share of the scripted
+gait's on the same episodes (any positive progress where the gait made none)."""
 
 
 def _monitor_curve(run_dir: Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -222,6 +225,8 @@ def _checks(
             checks[name]["progress_vs_gait"] = (
                 round(row["progress_mean_m"] / g, 2) if g > 0 else None
             )
+            mine = row["progress_mean_m"]
+            checks[name]["gait_target_met"] = mine > 0 and mine >= TARGET_GAIT_SHARE * g
             # The stricter yardstick: the gait's progress had every goal lain its way.
             checks[name]["gait_distance_m"] = gait["distance_mean_m"]
             checks[name]["progress_vs_gait_distance"] = round(
@@ -236,11 +241,13 @@ def _gait_share(check: dict[str, Any]) -> str:
     its progress would be had every goal lain that way)."""
     if "gait_progress_m" not in check:
         return "."
+    met = "met" if check["gait_target_met"] else "NOT met"
     toward = (
-        f"{check['progress_vs_gait']:.0%} of the scripted gait's progress"
+        f"{check['progress_vs_gait']:.0%} of the scripted gait's progress "
+        f"(target {TARGET_GAIT_SHARE:.0%}: {met})"
         if check["progress_vs_gait"] is not None
         else "the scripted gait made no progress toward the goal "
-        f"({check['gait_progress_m']:.2f} m)"
+        f"({check['gait_progress_m']:.2f} m; target, progress of its own: {met})"
     )
     return (
         f"; {toward}, and {check['progress_vs_gait_distance']:.0%} of the distance the gait "

@@ -269,15 +269,19 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
     check = report["checks"]["trained on oracle"]
     assert check["condition"] == "oracle" and "progress_vs_random" in check
     trained = report["results"]["trained on oracle"]["oracle"]["progress_mean_m"]
-    assert check["progress_vs_gait"] == round(trained / gait["oracle"]["progress_mean_m"], 2)
+    gait_progress = gait["oracle"]["progress_mean_m"]
+    assert check["progress_vs_gait"] == round(trained / gait_progress, 2)
     # The gait rolled at least as far as it progressed toward the goal.
     assert gait["oracle"]["distance_mean_m"] >= abs(gait["oracle"]["progress_mean_m"]) - 1e-3
     assert check["gait_distance_m"] == gait["oracle"]["distance_mean_m"]
     assert check["progress_vs_gait_distance"] == round(
         trained / gait["oracle"]["distance_mean_m"], 2
     )
-    assert _gait_share({**check, "gait_progress_m": -0.5, "progress_vs_gait": None}).startswith(
-        "; the scripted gait made no progress toward the goal (-0.50 m), and "
+    assert check["gait_target_met"] == (trained > 0 and trained >= 0.5 * gait_progress)
+    backwards = {**check, "gait_progress_m": -0.5, "progress_vs_gait": None}
+    assert _gait_share({**backwards, "gait_target_met": False}).startswith(
+        "; the scripted gait made no progress toward the goal (-0.50 m; target, progress of "
+        "its own: NOT met), and "
     )
     text = (tmp_path / "report" / "report.md").read_text()
     assert "of the scripted gait's progress" in text and "| scripted gait | oracle |" in text
