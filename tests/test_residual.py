@@ -128,3 +128,43 @@ def test_a_policy_trained_on_residual_actions_is_evaluated_on_them(tmp_path: Pat
         assert plain.action_base is None  # type: ignore[attr-defined]
     finally:
         _release_env()
+
+
+class _Commanding:
+    """A backend that reports the targets that drove each period, as the robot link's
+    driver does: the ones asked for (``trim=None``), else these."""
+
+    def __init__(self, inner: object, trim: np.ndarray | None = None) -> None:
+        self._inner, self._trim = inner, trim
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._inner, name)
+
+    def step(self, targets: np.ndarray) -> object:
+        result = self._inner.step(targets if self._trim is None else self._trim)  # type: ignore[attr-defined]
+        driven = np.array(targets if self._trim is None else self._trim, dtype=np.float64)
+        return replace(result, command=driven)
+
+
+def test_a_backend_that_reports_its_command_is_charged_what_drove_it() -> None:
+    """A robot that reports the command it was asked for (the link's driver) charges
+    the correction as the simulation does; one that drove other targets (a limiter, a
+    replayed log) charges the action those imply."""
+
+    def run(trim: np.ndarray | None, ctrl_cost: float, **kwargs: object) -> np.ndarray:
+        env = gym.make(THREE_BAR, estimator="oracle", ctrl_cost=ctrl_cost, **kwargs)
+        if trim is not None or kwargs:
+            env.unwrapped.backend = _Commanding(env.unwrapped.backend, trim)  # type: ignore[attr-defined]
+        half = np.full(env.action_space.shape, 0.5, dtype=np.float32)
+        return _rewards(env, lambda obs: half)
+
+    echoed = run(None, 0.05, residual_gait=0.5)
+    plain = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, ctrl_cost=0.05)
+    half = np.full(plain.action_space.shape, 0.5, dtype=np.float32)
+    assert np.array_equal(echoed, _rewards(plain, lambda obs: half))
+    # Absolute actions, the robot held at the middle of the motors' range (action 0):
+    # asked for 0.5 everywhere, charged nothing.
+    env = gym.make(THREE_BAR, estimator="oracle").unwrapped
+    middle = env.action_to_targets(np.zeros(env.action_space.shape))  # type: ignore[attr-defined]
+    env.close()
+    np.testing.assert_array_equal(run(middle, 0.05), run(middle, 0.0))

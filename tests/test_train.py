@@ -277,7 +277,6 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
     assert check["progress_vs_gait_distance"] == round(
         trained / gait["oracle"]["distance_mean_m"], 2
     )
-    assert check["gait_target_met"] == (trained > 0 and trained >= 0.5 * gait_progress)
     backwards = {**check, "gait_progress_m": -0.5, "progress_vs_gait": None}
     assert _gait_share({**backwards, "gait_target_met": False}).startswith(
         "; the scripted gait made no progress toward the goal (-0.50 m; target, progress of "
@@ -441,3 +440,51 @@ def test_runs_of_the_same_name_are_told_apart_by_their_folders(tmp_path: Path) -
     assert _distinct_labels(runs) == ["seed_0/ppo_ukf", "seed_1/ppo_ukf", "x"]
     with pytest.raises(ValueError, match=r"the run .*seed_0/ppo_ukf is given twice"):
         _distinct_labels([runs[0], runs[1], runs[0]])
+    # named as given: a link keeps its own name, a folder at the root its own
+    runs[0].parent.mkdir()
+    (tmp_path / "latest").symlink_to(runs[0].parent)
+    assert _distinct_labels([tmp_path / "latest" / "ppo_ukf", runs[1]]) == [
+        "latest/ppo_ukf",
+        "seed_1/ppo_ukf",
+    ]
+    assert _distinct_labels([Path("/ppo_ukf"), Path("/tmp/ppo_ukf")]) == ["/ppo_ukf", "tmp/ppo_ukf"]
+    with pytest.raises(ValueError, match="given twice"):
+        _distinct_labels([tmp_path / "latest" / "ppo_ukf", runs[0]])
+
+
+@pytest.mark.parametrize(
+    ("mine", "gait", "distance", "share", "met", "own_way"),
+    [
+        (0.10, 0.20, 1.5, 0.5, True, 0.07),  # half the gait's progress: met
+        (0.0994, 0.20, 1.5, 0.5, True, 0.07),  # judged on the share as printed
+        (0.09, 0.20, 1.5, 0.45, False, 0.06),
+        (0.05, -0.30, 1.5, None, True, 0.03),  # the gait went backwards: progress is enough
+        (-0.05, -0.30, 1.5, None, False, -0.03),
+        (0.0, 0.0, 1.5, None, False, 0.0),
+        (0.2, 0.1, 0.001, 2.0, True, None),  # a gait that stayed put: no share of its way
+        (0.2, 0.1, float("nan"), 2.0, True, None),
+    ],
+)
+def test_a_policy_is_set_against_the_gait_by_its_targets(
+    mine: float, gait: float, distance: float, share: float | None, met: bool,
+    own_way: float | None,
+) -> None:  # fmt: skip
+    from agents.report import _checks, check_sentence
+
+    def row(progress: float, rolls: float = 2.0, distance: float = 0.3) -> dict[str, float]:
+        return {"progress_mean_m": progress, "rolls_per_episode": rolls,
+                "distance_mean_m": distance}  # fmt: skip
+
+    table = {
+        "trained on ukf": {"ukf": row(mine)},
+        "random": {"ukf": row(0.01, 0.2)},
+        "scripted gait": {"ukf": row(gait, 9.0, distance)},
+    }
+    check = _checks(table, ["trained on ukf"], ["oracle", "ukf"])["trained on ukf"]
+    assert check["condition"] == "ukf"
+    assert check["progress_vs_gait"] == share and check["gait_target_met"] is met
+    assert check["progress_vs_gait_distance"] == own_way
+    sentence = check_sentence(check)
+    assert ("target 50%: met" in sentence or "progress of its own: met" in sentence) is met
+    assert ("rolls its own way" in sentence) is (own_way is not None)
+    assert "nan" not in sentence

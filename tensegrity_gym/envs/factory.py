@@ -259,7 +259,8 @@ def make_env(
             observation), the env commanding ``gait + residual_gait * action`` clipped
             to [-1, 1] (residual actions: a policy starts from the gait and learns to
             do better). The robot must have a gait. ``ctrl_cost`` then charges the
-            correction, not the command: the gait's own commands cost nothing.
+            policy's correction (before the scale), not the command: the gait's own
+            commands cost nothing.
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.

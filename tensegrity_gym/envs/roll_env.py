@@ -240,20 +240,20 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     ) -> tuple[NDArray[np.float32], float, bool, bool, dict[str, Any]]:
         if self._estimate is None or self._observation is None:
             raise RuntimeError("call reset() before step() (and again after a reset that failed)")
-        a = charged = self._check_action(action)
+        a = policy_action = self._check_action(action)
+        base = None
         if self.action_base is not None:  # the policy corrects the scripted controller
             base = np.asarray(self.action_base(self._observation), dtype=np.float64)
             a = np.clip(base + self.residual_scale * a, -1.0, 1.0)
-        targets = self.action_to_targets(a)
-        result = self.backend.step(targets)
+        asked = self.action_to_targets(a)
+        result = self.backend.step(asked)
         if result.diverged:
             # The episode ends here; the policy gets the last finite observation.
             info = self._info(self._estimate, diverged=True)
             info.update(result.info)
             return self._observation, 0.0, False, True, info
-        if result.command is not None:  # e.g. a replayed log drives itself
-            targets = np.asarray(result.command, dtype=np.float64)
-            a = charged = self.targets_to_action(targets).astype(np.float64)
+        # What drove the period: a replayed log drives itself, a robot's limiter may trim.
+        targets = asked if result.command is None else np.asarray(result.command, dtype=np.float64)
         previous = self._estimate
         estimate = self.estimator.update(result.samples, targets)
         self._estimate = estimate
@@ -261,10 +261,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         rejected = self.task.implausible_step(previous, estimate)
         reward = 0.0
         if rejected is None:
-            # With residual actions the control cost is the correction's: the gait's own
-            # commands are free, so that the cost does not teach the policy to stop rolling.
-            cost_of = np.clip(charged, -1.0, 1.0).astype(np.float32)
-            reward = self.task.reward(previous, estimate, cost_of)
+            charged = self._charged(policy_action, base, asked, targets)
+            reward = self.task.reward(previous, estimate, charged)
             if not np.isfinite(reward):
                 reward, rejected = 0.0, f"the reward was {reward}"
         self.task.advance(previous, estimate)  # e.g. a reached goal is replaced
@@ -276,6 +274,24 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode == "human":
             self.render()
         return self._observation, float(reward), terminated, result.ended and not terminated, info
+
+    def _charged(
+        self,
+        action: NDArray[np.float64],
+        base: NDArray[np.float64] | None,
+        asked: NDArray[np.float64],
+        driven: NDArray[np.float64],
+    ) -> NDArray[np.float32]:
+        """What the control cost charges, (m,) in [-1, 1]: the policy's ``action``; with
+        residual actions that is its correction of the ``base`` before the scale, so the
+        gait's own commands are free and the cost does not teach the policy to stop
+        rolling. Where the backend drove other rest-length targets (m) than those
+        ``asked`` (a replayed log; a robot's limiter), the action ``driven`` implies."""
+        if not np.allclose(driven, asked, rtol=0.0, atol=1e-9):
+            action = self.targets_to_action(driven).astype(np.float64)
+            if base is not None:
+                action = (action - base) / self.residual_scale
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
 
     def render(self) -> NDArray[np.uint8] | None:
         if self.render_mode is None:

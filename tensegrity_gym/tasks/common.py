@@ -70,7 +70,8 @@ class GoalFrameTask:
         description: the robot.
         goal_low, goal_high: bounds of the goal features, (k,).
         ctrl_cost: weight of the mean squared action: the policy's own, which with
-            residual actions is its correction of the gait (the gait's commands are free).
+            residual actions is its correction of the gait before the scale (the gait's
+            commands are free).
         progress_weight: reward per rod length of progress.
         control_period: seconds per step; bounds the progress a step can earn.
     """
