@@ -141,9 +141,8 @@ class _Commanding:
         return getattr(self._inner, name)
 
     def step(self, targets: np.ndarray) -> object:
-        result = self._inner.step(targets if self._trim is None else self._trim)  # type: ignore[attr-defined]
         driven = np.array(targets if self._trim is None else self._trim, dtype=np.float64)
-        return replace(result, command=driven)
+        return replace(self._inner.step(driven), command=driven)  # type: ignore[attr-defined]
 
 
 def test_a_backend_that_reports_its_command_is_charged_what_drove_it() -> None:
@@ -153,8 +152,7 @@ def test_a_backend_that_reports_its_command_is_charged_what_drove_it() -> None:
 
     def run(trim: np.ndarray | None, ctrl_cost: float, **kwargs: object) -> np.ndarray:
         env = gym.make(THREE_BAR, estimator="oracle", ctrl_cost=ctrl_cost, **kwargs)
-        if trim is not None or kwargs:
-            env.unwrapped.backend = _Commanding(env.unwrapped.backend, trim)  # type: ignore[attr-defined]
+        env.unwrapped.backend = _Commanding(env.unwrapped.backend, trim)  # type: ignore[attr-defined]
         half = np.full(env.action_space.shape, 0.5, dtype=np.float32)
         return _rewards(env, lambda obs: half)
 

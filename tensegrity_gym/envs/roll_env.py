@@ -287,7 +287,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         gait's own commands are free and the cost does not teach the policy to stop
         rolling. Where the backend drove other rest-length targets (m) than those
         ``asked`` (a replayed log; a robot's limiter), the action ``driven`` implies."""
-        if not np.allclose(driven, asked, rtol=0.0, atol=1e-9):
+        # ``driven is asked`` where the backend reported no command: the usual step.
+        if driven is not asked and not np.allclose(driven, asked, rtol=0.0, atol=1e-9):
             action = self.targets_to_action(driven).astype(np.float64)
             if base is not None:
                 action = (action - base) / self.residual_scale

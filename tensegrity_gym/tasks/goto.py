@@ -20,8 +20,9 @@ goal            (3,)        the direction to the goal in the world frame
 Reward per step: ``progress_weight * progress / L - ctrl_cost * mean(action**2)``, plus
 ``success_bonus`` on the step that reaches a goal, with ``progress`` how much closer
 (m) the estimated CoM came to the goal and ``action`` the policy's (with residual
-actions, its correction of the gait before the scale). An implausible step (an estimate that jumped,
-:meth:`GoToTask.implausible_step`) earns nothing and reaches no goal.
+actions, its correction of the gait before the scale). An implausible step (an
+estimate that jumped, :meth:`GoToTask.implausible_step`) earns nothing and reaches no
+goal.
 """
 
 from __future__ import annotations

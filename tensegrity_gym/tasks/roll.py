@@ -13,9 +13,9 @@ goal            (2,)        goal heading in the world frame, (cos, sin)
 Reward per step: ``progress_weight * progress / L - ctrl_cost * mean(action**2)``,
 with ``progress`` the estimated CoM's displacement along the goal heading (m) and
 ``action`` the policy's (with residual actions, its correction of the gait before the
-scale). A step
-whose estimated CoM moved farther than the robot can travel in one period (an estimate
-that jumped) earns no progress: :meth:`RollTask.implausible_step` says why.
+scale). A step whose estimated CoM moved farther than the robot can travel in one
+period (an estimate that jumped) earns no progress: :meth:`RollTask.implausible_step`
+says why.
 """
 
 from __future__ import annotations
