@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the ids)
-from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.model.description import DEFAULT_GAIT, STEER_GAIT, load_robot
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec
 from tensegrity_gym.tasks.gaits import FaceGait
 
@@ -38,8 +38,10 @@ if TYPE_CHECKING:
 __all__ = [
     "BASELINES",
     "CONDITIONS",
+    "GAIT_BASELINES",
     "GAIT_POLICY",
     "RANDOM_POLICY",
+    "STEER_POLICY",
     "Condition",
     "EpisodeResult",
     "LoadedPolicy",
@@ -55,7 +57,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-ACTION_KWARGS = ("residual_gait",)
+ACTION_KWARGS = ("residual_gait", "base_gait")
 """The ``gym.make`` arguments of a training run that say what its actions mean: its
 policy is evaluated with them. Its others (``train --env-kwargs``: its task's reward,
 its terrain) shaped its training only: every policy and baseline of an evaluation runs
@@ -63,7 +65,11 @@ on the env id's own task and worlds, so that the rows compare."""
 
 RANDOM_POLICY = "random"
 GAIT_POLICY = "scripted gait"
-BASELINES = (RANDOM_POLICY, GAIT_POLICY)
+STEER_POLICY = "steering gait"
+GAIT_BASELINES = {GAIT_POLICY: DEFAULT_GAIT, STEER_POLICY: STEER_GAIT}
+"""The baselines' rows of the robot's scripted gaits, by the gait they run (a robot
+without one has no such row)."""
+BASELINES = (RANDOM_POLICY, *GAIT_BASELINES)
 """The names of the policies an evaluation sets beside the trained ones."""
 
 
@@ -325,18 +331,20 @@ def random_policy(env_id: str, seed: int) -> LoadedPolicy:
     return LoadedPolicy(RANDOM_POLICY, env_id, "-", actions, actions.new_episode)
 
 
-def gait_policy(env_id: str) -> LoadedPolicy | None:
-    """The robot's scripted face gait (:class:`FaceGait`, its ``"forward"`` gait) acting
-    on the estimates as a policy would; None for a robot without a gait."""
+def gait_policy(env_id: str, name: str = GAIT_POLICY) -> LoadedPolicy | None:
+    """A scripted face gait of the robot (:class:`FaceGait`; ``name`` is a key of
+    :data:`GAIT_BASELINES`: the ``"forward"`` gait, or the ``"steer"`` gait that rolls
+    toward the goal) acting on the estimates as a policy would; None for a robot
+    without that gait."""
     env = gym.make(env_id, estimator="oracle")
     inner = cast("TensegrityEnv", env.unwrapped)
     try:
-        gait = FaceGait(inner.backend.description, inner.task)
+        gait = FaceGait(inner.backend.description, inner.task, gait=GAIT_BASELINES[name])
     except ValueError:
         return None
     finally:
         env.close()
-    return LoadedPolicy(GAIT_POLICY, env_id, "-", gait, lambda _seed: gait.reset())
+    return LoadedPolicy(name, env_id, "-", gait, lambda _seed: gait.reset())
 
 
 def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> EpisodeResult:

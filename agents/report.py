@@ -14,8 +14,10 @@ from agents.cluster import executor
 from agents.evaluate import (
     BASELINES,
     CONDITIONS,
+    GAIT_BASELINES,
     GAIT_POLICY,
     RANDOM_POLICY,
+    STEER_POLICY,
     condition,
     evaluate_policies,
     gait_policy,
@@ -156,8 +158,8 @@ def write_report(
     trained = list(policies)
     if include_random:
         policies.append(random_policy(env_id, seed))
-        gait = gait_policy(env_id)
-        policies += [gait] if gait is not None else []
+        gaits = (gait_policy(env_id, name) for name in GAIT_BASELINES)
+        policies += [g for g in gaits if g is not None]
     out.mkdir(parents=True, exist_ok=True)
     log.info("evaluating %s under %s", [p.name for p in policies], list(conditions))
     with executor(ray_address) as jobs:
@@ -216,6 +218,7 @@ def _checks(
     cond = "ukf" if "ukf" in conditions else conditions[0]
     random_progress = table[RANDOM_POLICY][cond]["progress_mean_m"]
     gait = table.get(GAIT_POLICY, {}).get(cond)
+    steering = table.get(STEER_POLICY, {}).get(cond)
     checks: dict[str, Any] = {}
     for name in trained:
         row = table[name][cond]
@@ -229,6 +232,12 @@ def _checks(
         }
         if gait is not None:
             checks[name].update(_against_gait(row["progress_mean_m"], gait))
+        if steering is not None:
+            g = steering["progress_mean_m"]
+            checks[name]["steering_progress_m"] = g
+            checks[name]["progress_vs_steering"] = (
+                round(row["progress_mean_m"] / g, 2) if g > 0 else None
+            )
     return checks
 
 
@@ -263,7 +272,18 @@ def check_sentence(check: dict[str, Any]) -> str:
         f"{check['progress_vs_random']}x the progress of a random policy (target "
         f"{TARGET_PROGRESS_RATIO:g}x: {_met(check['progress_target_met'])}), "
         f"{check['rolls_per_episode']} rolls per episode (target {TARGET_ROLLS:g}: "
-        f"{_met(check['rolls_target_met'])})" + _gait_share(check)
+        f"{_met(check['rolls_target_met'])})" + _gait_share(check) + _steering_share(check)
+    )
+
+
+def _steering_share(check: dict[str, Any]) -> str:
+    """The sentence's end on the steering gait (which aims), where the robot has one."""
+    share = check.get("progress_vs_steering")
+    if "steering_progress_m" not in check:
+        return ""
+    g = check["steering_progress_m"]
+    return f" The steering gait made {g:.2f} m toward the goal" + (
+        f": the policy {share:.0%} of it." if share is not None else "."
     )
 
 

@@ -57,7 +57,14 @@ import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
 from tensegrity_gym.model.description import load_robot
-from tensegrity_gym.tasks.gaits import FaceGait, gait_table, period_commands
+from tensegrity_gym.tasks.gaits import (
+    FaceGait,
+    face_yaw,
+    gait_table,
+    lowest_face,
+    period_commands,
+)
+from tensegrity_gym.tasks.gaits import turned as rotated
 
 Face = tuple[int, ...]
 Route = tuple[int, ...]  # candidate indices run one period each from the reset
@@ -79,26 +86,8 @@ def candidates(m: int, max_combo: int, hold: np.ndarray) -> list[tuple[tuple[int
     return out
 
 
-def support_face(nodes: np.ndarray) -> Face:
-    """The three lowest nodes, sorted, as FaceGait reads the support face."""
-    return tuple(sorted(np.argsort(nodes[:, 2], kind="stable")[:3].tolist()))
-
-
-def face_yaw(nodes: np.ndarray, face: Face) -> float:
-    """The support triangle's orientation (rad): from its centre to its first node."""
-    p = nodes[list(face), :2]
-    v = p[0] - p.mean(axis=0)
-    return float(np.arctan2(v[1], v[0]))
-
-
 def unit(v: np.ndarray) -> np.ndarray:
     return v / max(float(np.linalg.norm(v)), 1e-12)
-
-
-def rotated(v: np.ndarray, angle: float) -> np.ndarray:
-    """``v`` (2,) turned counter-clockwise (seen from above) by ``angle`` (rad)."""
-    c, s = np.cos(angle), np.sin(angle)
-    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1]])
 
 
 class Rollouts:
@@ -125,7 +114,7 @@ class Rollouts:
 
     def _record(self, path: Route) -> None:
         truth = self.env.backend.ground_truth()
-        face = support_face(truth.node_positions)
+        face = lowest_face(truth.node_positions)
         yaw = face_yaw(truth.node_positions, face)
         self.cache[",".join(map(str, path))] = [*face, *truth.com[:2].tolist(), yaw]
 
@@ -299,6 +288,34 @@ def options(
     }
 
 
+def steering(
+    sim: Rollouts, model: dict[tuple[Face, int], tuple[Face, np.ndarray]], per_pair: int
+) -> dict[str, Any]:
+    """A steering gait's section: for every face, the ``per_pair`` most common distinct
+    outcomes (:func:`options`) of every face it leads to, each with its move (CoM x, y in
+    m in the face's frame, the yaw's change in rad) and the face it leaves the robot on,
+    for FaceGait to choose from by the goal's direction."""
+    d = sim.description
+    actuated = [d.cables[int(k)].name for k in d.actuated]
+    faces = []
+    for (face, to), ks in sorted(options(model).items()):
+        for k in ks[:per_pair]:
+            move = model[face, k][1]
+            if float(np.linalg.norm(move[:2])) < MIN_MOVE / 2:
+                continue  # a shuffle on the spot steers nowhere
+            faces.append(
+                {
+                    "face": [d.nodes[i].name for i in face],
+                    "contract": [actuated[c] for c in sim.tried[k][0]],
+                    "others": sim.tried[k][1],
+                    "move": [round(float(v), 3) for v in move],
+                    "to": [d.nodes[i].name for i in to],
+                }
+            )
+    steps = {"hold_steps": sim.hold_steps, "settle_steps": sim.settle_steps}
+    return {**steps, **({"ramp_steps": sim.ramp_steps} if sim.ramp_steps else {}), "faces": faces}
+
+
 def turning_cycles(
     model: dict[tuple[Face, int], tuple[Face, np.ndarray]], sign: float, count: int
 ) -> list[Table]:
@@ -350,7 +367,7 @@ def closed_loop(args: argparse.Namespace, gait: Any, seed: int) -> dict[str, Any
         truth = inner.backend.ground_truth()
         com.append(truth.com[:2].copy())
         if k % period == 0:
-            face = support_face(truth.node_positions)
+            face = lowest_face(truth.node_positions)
             rests.append((face, face_yaw(truth.node_positions, face)))
         if k < args.steps:
             obs, *_ = env.step(policy(obs))
@@ -469,6 +486,10 @@ def main() -> None:
     goal = parser.add_mutually_exclusive_group()
     goal.add_argument("--direction", choices=("forward", "backward"), default="forward")
     goal.add_argument("--turn", choices=("left", "right"), default=None)
+    goal.add_argument(
+        "--steer", action="store_true", help="every face's distinct transitions, to steer by"
+    )
+    parser.add_argument("--per-pair", type=int, default=2, help="--steer: outcomes per face pair")
     parser.add_argument("--candidates", type=int, default=6, help="turning cycles run")
     parser.add_argument("--max-combo", type=int, default=3)
     parser.add_argument("--hold", type=int, default=25, help="control steps of a contraction")
@@ -496,6 +517,18 @@ def main() -> None:
     )
     cache = doc.get("outcomes", {}) if doc.get("meta") == meta else {}
     sims = [Rollouts(args, seed, cache.setdefault(str(seed), {})) for seed in args.seeds]
+    if args.steer:
+        section_ = steering(sims[0], explore(sims[0]), args.per_pair)
+        if args.cache is not None:
+            Path(args.cache).write_text(json.dumps({"meta": meta, "outcomes": cache}))
+        seed = args.seeds[0]
+        print(f"# steer: found by scripts/find_gait.py {args.robot} --steer --seeds {seed}.")
+        print(
+            yaml.safe_dump(
+                {"gaits": {"steer": section_}}, sort_keys=False, default_flow_style=None, width=100
+            )
+        )
+        return
     has_gait = sims[0].description.gait is not None
     forward = [closed_loop(args, None, seed) for seed in args.seeds] if has_gait else None
     table, runs = find(args, sims, forward)

@@ -259,7 +259,14 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
     report = write_report(
         [tiny_run], tmp_path / "report", episodes=1, conditions=("oracle", "ukf_4_anchors")
     )
-    assert set(report["results"]) == {"trained on oracle", "random", "scripted gait"}
+    assert set(report["results"]) == {
+        "trained on oracle",
+        "random",
+        "scripted gait",
+        "steering gait",
+    }
+    steering = report["results"]["steering gait"]["oracle"]
+    assert steering["progress_mean_m"] > 0.3, steering  # it rolls toward the goal
     # The gait rolls (some 1.5 m in 30 s), the random policy hardly moves.
     gait, random = report["results"]["scripted gait"], report["results"]["random"]
     assert gait["oracle"]["progress_mean_m"] > 0.5 > abs(random["oracle"]["progress_mean_m"])
@@ -488,3 +495,23 @@ def test_a_policy_is_set_against_the_gait_by_its_targets(
     assert ("target 50%: met" in sentence or "progress of its own: met" in sentence) is met
     assert ("rolls its own way" in sentence) is (own_way is not None)
     assert "nan" not in sentence
+
+
+@pytest.mark.parametrize(("steering", "share"), [(1.0, 0.8), (-0.1, None)])
+def test_a_policy_is_set_against_the_steering_gait_where_there_is_one(
+    steering: float, share: float | None
+) -> None:
+    from agents.report import _checks, check_sentence
+
+    def row(progress: float) -> dict[str, float]:
+        return {"progress_mean_m": progress, "rolls_per_episode": 3.0, "distance_mean_m": 1.0}
+
+    table = {"trained on ukf": {"ukf": row(0.8)}, "random": {"ukf": row(0.0)}}
+    check = _checks(table, ["trained on ukf"], ["ukf"])["trained on ukf"]
+    assert "steering_progress_m" not in check and "steering" not in check_sentence(check)
+    table["steering gait"] = {"ukf": row(steering)}
+    check = _checks(table, ["trained on ukf"], ["ukf"])["trained on ukf"]
+    assert check["steering_progress_m"] == steering and check["progress_vs_steering"] == share
+    sentence = check_sentence(check)
+    assert f"steering gait made {steering:.2f} m" in sentence
+    assert ("80% of it" in sentence) is (share is not None)

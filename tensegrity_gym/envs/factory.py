@@ -210,6 +210,7 @@ def make_env(
     viewer_port: int = 8765,
     viewer_speed: float = 1.0,
     residual_gait: float | None = None,
+    base_gait: str = DEFAULT_GAIT,
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -261,6 +262,9 @@ def make_env(
             do better). The robot must have a gait. ``ctrl_cost`` then charges the
             policy's correction (before the scale), not the command: the gait's own
             commands cost nothing.
+        base_gait: the name of the gait residual actions correct (one of the robot's
+            :attr:`~tensegrity_gym.model.description.RobotDescription.gaits`):
+            ``"forward"``, or ``"steer"``, which rolls toward the task's goal.
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -281,9 +285,10 @@ def make_env(
     check_calibration(calibration, world_seed)
     if residual_gait is not None:
         check_number("residual_gait", residual_gait, positive=True)
-        if DEFAULT_GAIT not in description.gaits:
+        if base_gait not in description.gaits:
             raise ValueError(
-                f"make: residual_gait corrects the robot's gait; {description.name} has none"
+                f"make: base_gait: residual_gait corrects the robot's gait {base_gait!r}; "
+                f"{description.name}'s gaits: {sorted(description.gaits) or 'none'}"
             )
     ranges = resolve_randomization(randomization)
     # The task checks its own arguments before anything is started.
@@ -308,7 +313,7 @@ def make_env(
         env = _assemble(backend, estimator, spec, description, task_arguments, record_dir,
                         render_mode, source, viewer)  # fmt: skip
         if residual_gait is not None:
-            env.action_base = FaceGait(description, env.task)
+            env.action_base = FaceGait(description, env.task, gait=base_gait)
             env.residual_scale = float(residual_gait)
         return env
     except BaseException:

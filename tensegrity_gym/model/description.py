@@ -28,6 +28,7 @@ if TYPE_CHECKING:
 __all__ = [
     "DEFAULT_GAIT",
     "PRESETS",
+    "STEER_GAIT",
     "Cable",
     "CableLengthConfig",
     "CameraConfig",
@@ -59,6 +60,8 @@ _DISPLAY_NAME = re.compile(r"[A-Z][A-Za-z0-9]*\Z")
 _GAIT_NAME = re.compile(r"[a-z][a-z0-9_-]*\Z")
 
 DEFAULT_GAIT = "forward"
+STEER_GAIT = "steer"
+"""The name of a robot's steering gait (``scripts/find_gait.py --steer``), if it has one."""
 """The name of a robot's default gait: its YAML's ``gait`` (:attr:`RobotDescription.gait`)."""
 
 # A rod whose nodes are placed further from its length than this cannot be assembled.
@@ -238,7 +241,11 @@ class SensorSuite:
 class GaitFace:
     """One face of a scripted gait's rolling cycle: resting on ``face``, contract the
     ``contract`` cables fully, and hold the others at their initial rest length
-    (``"hold"``) or let them out to their maximum (``"out"``)."""
+    (``"hold"``) or let them out to their maximum (``"out"``).
+
+    A *steering* gait's entries also say where the contraction takes the robot
+    (``move``, ``to``); such a gait may list a face more than once, and FaceGait
+    chooses among its entries the one that carries the CoM furthest toward the goal."""
 
     face: tuple[int, ...]
     """Node indices of the support face, sorted, (3,)."""
@@ -246,6 +253,12 @@ class GaitFace:
     """Indices into :attr:`RobotDescription.actuated` of the cables to contract."""
     others: str
     """``"hold"`` or ``"out"``."""
+    move: tuple[float, float, float] | None = None
+    """The CoM's move over the gait period in the face's frame: x (m) from the support
+    triangle's centre toward its first node (lowest index), y (m) 90° counter-clockwise
+    of it, and the triangle's yaw change (rad, counter-clockwise); None: not known."""
+    to: tuple[int, ...] | None = None
+    """The support face the period leaves the robot on (sorted node indices, (3,))."""
 
 
 @dataclass(frozen=True)
@@ -653,17 +666,32 @@ def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str =
     faces: list[GaitFace] = []
     for i, item in enumerate(r.sequence(g["faces"], f"{p}.faces")):
         q = f"{p}.faces[{i}]"
-        f = r.mapping(item, q, {"face", "contract", "others"})
-        face = tuple(sorted(_names(r, f["face"], f"{q}.face", node_index)))
-        if len(face) != 3:
-            raise r.fail(f"{q}.face", f"a support face has 3 nodes, got {len(face)}")
-        if any(face == other.face for other in faces):
-            raise r.fail(f"{q}.face", "this face has an entry already")
+        f = r.mapping(item, q, {"face", "contract", "others"}, frozenset({"move", "to"}))
+        face = _face(r, f["face"], f"{q}.face", node_index)
+        move = None if "move" not in f else _move(r.vector(f["move"], f"{q}.move", 3))
+        to = None if "to" not in f else _face(r, f["to"], f"{q}.to", node_index)
+        if (move is None) != (to is None):
+            raise r.fail(q, "a steering entry gives both 'move' and 'to', or neither")
+        if any(face == o.face and (move is None or o.move is None) for o in faces):
+            raise r.fail(f"{q}.face", "this face has an entry already (only steering "
+                         "entries, with 'move' and 'to', may share a face)")  # fmt: skip
         contract = _names(r, f["contract"], f"{q}.contract", actuated)
         if f["others"] not in ("hold", "out"):
             raise r.fail(f"{q}.others", f"expected 'hold' or 'out', got {f['others']!r}")
-        faces.append(GaitFace(face, contract, f["others"]))
+        faces.append(GaitFace(face, contract, f["others"], move, to))
     return Gait(tuple(faces), **steps)
+
+
+def _move(v: tuple[float, ...]) -> tuple[float, float, float]:
+    return v[0], v[1], v[2]
+
+
+def _face(r: _Reader, value: Any, path: str, node_index: dict[str, int]) -> tuple[int, ...]:
+    """A support face by node names: its sorted node indices, (3,)."""
+    face = tuple(sorted(_names(r, value, path, node_index)))
+    if len(face) != 3:
+        raise r.fail(path, f"a support face has 3 nodes, got {len(face)}")
+    return face
 
 
 def _gaits(
@@ -959,6 +987,11 @@ def gait_document(d: RobotDescription, name: str = DEFAULT_GAIT) -> dict[str, An
                 "face": [d.nodes[i].name for i in f.face],
                 "contract": [actuated[k] for k in f.contract],
                 "others": f.others,
+                **(
+                    {}
+                    if f.move is None or f.to is None
+                    else {"move": list(f.move), "to": [d.nodes[i].name for i in f.to]}
+                ),
             }
             for f in gait.faces
         ],

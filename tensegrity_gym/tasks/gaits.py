@@ -21,15 +21,24 @@ transitions that carry the centre of mass furthest in one direction, or a cycle 
 whose path turns. Faces are sets of node indices, fixed to the robot's body, so a table
 works at any heading; the rolling direction follows the robot's orientation, not the
 task's goal.
+
+A *steering* gait (``scripts/find_gait.py --steer``, three_bar's ``steer``) lists, for
+each face, several contractions with the move each makes (the CoM's displacement and the
+turn, in the face's own frame) and the face it leads to. FaceGait turns every move into
+the goal frame by the support triangle's yaw there and takes the contraction whose move,
+followed by the best move from the face it leads to, carries the CoM furthest toward the
+goal: the goal frame's x axis, which the tasks point at the goal. It rolls toward any
+heading and to any goal, which a fixed table cannot.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tensegrity_gym.model.description import DEFAULT_GAIT, DescriptionError
+from tensegrity_gym.model.description import DEFAULT_GAIT, DescriptionError, GaitFace
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
@@ -40,7 +49,16 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import Task
     from tensegrity_gym.tasks.common import TaskObservation
 
-__all__ = ["FaceGait", "GaitTable", "gait_table", "period_commands", "ramp_toward"]
+__all__ = [
+    "FaceGait",
+    "GaitTable",
+    "face_yaw",
+    "gait_table",
+    "lowest_face",
+    "period_commands",
+    "ramp_toward",
+    "turned",
+]
 
 GaitTable = dict[tuple[int, ...], tuple[tuple[int, ...], str]]
 """Face (sorted node indices) -> (actuated cable indices to contract, "hold" | "out")."""
@@ -61,6 +79,28 @@ def gait_table(description: RobotDescription, gait: str = DEFAULT_GAIT) -> GaitT
             + "; find one with scripts/find_gait.py"
         )
     return {f.face: (f.contract, f.others) for f in found.faces}
+
+
+def lowest_face(positions: NDArray[np.floating]) -> tuple[int, ...]:
+    """The support face: the indices of the three lowest of ``positions`` (n, 3),
+    sorted."""
+    return tuple(sorted(np.argsort(positions[:, 2], kind="stable")[:3].tolist()))
+
+
+def face_yaw(positions: NDArray[np.floating], face: tuple[int, ...]) -> float:
+    """The support triangle's yaw (rad): from its centre to its first node (the lowest
+    index), seen from above; ``positions`` (n, 3) of the nodes in any frame with z up."""
+    p = positions[list(face), :2]
+    v = p[0] - p.mean(axis=0)
+    return float(np.arctan2(v[1], v[0]))
+
+
+def turned(v: NDArray[np.floating], angle: float) -> NDArray[np.float64]:
+    """Planar vectors ``v`` (..., 2) turned counter-clockwise (from above) by ``angle``
+    (rad)."""
+    c, s = np.cos(angle), np.sin(angle)
+    v = np.asarray(v, dtype=np.float64)
+    return np.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1]], axis=-1)
 
 
 def ramp_toward(
@@ -91,6 +131,16 @@ def period_commands(
     for k in range(hold_steps + settle_steps):
         commanded = ramp_toward(commanded, action if k < hold_steps else rest, ramp_steps)
         yield commanded
+
+
+@dataclass(frozen=True)
+class _Choice:
+    """One contraction a gait may make on a face: its action (m,) in [-1, 1], its move
+    in the face's frame (3,) (m, m, rad; None: unknown) and the face it leads to."""
+
+    action: NDArray[np.float32]
+    move: NDArray[np.float64] | None
+    to: tuple[int, ...] | None
 
 
 class FaceGait:
@@ -129,6 +179,7 @@ class FaceGait:
         settle_steps: int | None = None,
         ramp_steps: int | None = None,
     ) -> None:
+        given = table
         table = gait_table(description, gait) if table is None else table
         spec = description.gaits.get(gait)
         if hold_steps is None:
@@ -162,11 +213,17 @@ class FaceGait:
         lo, hi, _ = description.motor_limits
         rest_action = 2.0 * (description.rest_lengths[description.actuated] - lo) / (hi - lo) - 1.0
         self.hold_action = rest_action.astype(np.float32)
-        self._actions = {}
-        for face, (cables, rest) in table.items():
-            a = self.hold_action.copy() if rest == "hold" else np.ones(m, dtype=np.float32)
-            a[list(cables)] = -1.0
-            self._actions[face] = a
+        entries = (
+            spec.faces
+            if spec is not None and given is None
+            else tuple(GaitFace(f, c, r) for f, (c, r) in table.items())
+        )
+        self._choices: dict[tuple[int, ...], list[_Choice]] = {}
+        for e in entries:
+            a = self.hold_action.copy() if e.others == "hold" else np.ones(m, dtype=np.float32)
+            a[list(e.contract)] = -1.0
+            move = None if e.move is None else np.asarray(e.move, dtype=np.float64)
+            self._choices.setdefault(e.face, []).append(_Choice(a, move, e.to))
         self.reset()
 
     def reset(self) -> None:
@@ -174,20 +231,47 @@ class FaceGait:
         self._commanded = self.hold_action.copy()
 
     def support_face(self, observation: NDArray[np.float32]) -> tuple[int, ...]:
-        z = self._decode(observation).positions[:, 2]
-        return tuple(sorted(np.argsort(z, kind="stable")[:3].tolist()))
+        return lowest_face(self._decode(observation).positions)
 
-    def action_for_face(self, face: tuple[int, ...]) -> NDArray[np.float32]:
-        """The table's action; for a face off the cycle, that of the most similar face."""
-        if face in self._actions:
-            return self._actions[face]
-        nearest = max(self._actions, key=lambda f: len(set(f) & set(face)))
-        return self._actions[nearest]
+    @property
+    def steers(self) -> bool:
+        """Whether the gait chooses among moves by the goal (a steering gait)."""
+        return any(len(c) > 1 for c in self._choices.values())
+
+    def action_for_face(
+        self, face: tuple[int, ...], positions: NDArray[np.floating] | None = None
+    ) -> NDArray[np.float32]:
+        """The table's action on ``face``; for a face off the cycle, that of the most
+        similar face. Where the face has several (a steering gait) and ``positions``
+        (n, 3), the nodes in the goal frame, are given: the one that goes furthest
+        toward the goal (:meth:`score`)."""
+        choices = self._choices.get(face)
+        if choices is None:
+            choices = self._choices[max(self._choices, key=lambda f: len(set(f) & set(face)))]
+        if positions is None or len(choices) == 1:
+            return choices[0].action
+        yaw = face_yaw(positions, face)
+        return max(choices, key=lambda c: self.score(c, yaw)).action
+
+    def score(self, choice: _Choice, yaw: float) -> float:
+        """How far (m) toward the goal (the goal frame's x) ``choice`` carries the CoM
+        from a support triangle at ``yaw`` (rad, goal frame), followed by the best move
+        from the face it leaves the robot on: a two-period lookahead, so that a move
+        sideways that opens a fast one counts."""
+        if choice.move is None:
+            return 0.0
+        ahead = turned(choice.move[:2], yaw)[0]
+        after = [c.move for c in self._choices.get(choice.to or (), ()) if c.move is not None]
+        if after:
+            next_yaw = yaw + choice.move[2]
+            ahead += max(float(turned(m[:2], next_yaw)[0]) for m in after)
+        return float(ahead)
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         command = next(self._period, None)
         if command is None:  # a period begins: the support face chooses its action
-            action = self.action_for_face(self.support_face(observation))
+            positions = self._decode(observation).positions
+            action = self.action_for_face(lowest_face(positions), positions)
             steps = (self.hold_steps, self.settle_steps, self.ramp_steps)
             self._period = period_commands(self._commanded, action, self.hold_action, steps)
             command = next(self._period)
