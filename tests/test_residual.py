@@ -87,8 +87,11 @@ def test_the_residual_env_passes_gymnasiums_checks() -> None:
         ({"residual_gait": 0.0}, "residual_gait=0.0 must be a finite number and > 0"),
         ({"residual_gait": "big"}, "residual_gait='big' must be a finite number"),
         (
-            {"residual_gait": 0.5, "robot": replace(load_robot("three_bar"), gait=None)},
-            "three_bar has none",
+            {
+                "residual_gait": 0.5,
+                "robot": replace(load_robot("three_bar"), gait=None, named_gaits=()),
+            },
+            "three_bar's gaits: none",
         ),
     ],
 )

@@ -33,8 +33,9 @@ heading and to any goal, which a fixed table cannot.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
@@ -59,6 +60,9 @@ __all__ = [
     "ramp_toward",
     "turned",
 ]
+
+_YAW_BIN = np.radians(2.0)
+"""The yaw's resolution (rad) of a steering gait's memoised lookahead."""
 
 GaitTable = dict[tuple[int, ...], tuple[tuple[int, ...], str]]
 """Face (sorted node indices) -> (actuated cable indices to contract, "hold" | "out")."""
@@ -143,6 +147,15 @@ class _Choice:
     to: tuple[int, ...] | None
 
 
+class _Move(NamedTuple):
+    """A choice's move, as the lookahead reads it: x, y (m), turn (rad), the face next."""
+
+    x: float
+    y: float
+    turn: float
+    to: tuple[int, ...] | None
+
+
 class FaceGait:
     """A scripted policy that rolls the robot face to face.
 
@@ -166,6 +179,8 @@ class FaceGait:
         ramp_steps: control steps a command takes to cross the motors' whole range
             (:func:`ramp_toward`; 0: at once, at most ``hold_steps``); ``None``: the
             robot's gait's (0 without one).
+        horizon: gait periods a steering gait looks ahead when it chooses (each face
+            has some 4 moves, so the choice weighs about ``4 ** horizon`` paths).
     """
 
     def __init__(
@@ -178,6 +193,7 @@ class FaceGait:
         hold_steps: int | None = None,
         settle_steps: int | None = None,
         ramp_steps: int | None = None,
+        horizon: int = 6,
     ) -> None:
         given = table
         table = gait_table(description, gait) if table is None else table
@@ -210,6 +226,10 @@ class FaceGait:
         self.hold_steps = hold_steps
         self.settle_steps = settle_steps
         self.ramp_steps = ramp_steps
+        if not isinstance(horizon, int) or horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1 (periods), got {horizon!r}")
+        self.horizon = horizon
+        """Gait periods a steering gait looks ahead (:meth:`score`)."""
         lo, hi, _ = description.motor_limits
         rest_action = 2.0 * (description.rest_lengths[description.actuated] - lo) / (hi - lo) - 1.0
         self.hold_action = rest_action.astype(np.float32)
@@ -224,11 +244,22 @@ class FaceGait:
             a[list(e.contract)] = -1.0
             move = None if e.move is None else np.asarray(e.move, dtype=np.float64)
             self._choices.setdefault(e.face, []).append(_Choice(a, move, e.to))
+        # The lookahead's moves as plain floats: it weighs thousands of paths a choice.
+        self._moves: dict[tuple[int, ...], list[_Move]] = {
+            face: [
+                _Move(float(c.move[0]), float(c.move[1]), float(c.move[2]), c.to)
+                for c in cs
+                if c.move is not None
+            ]
+            for face, cs in self._choices.items()
+        }
         self.reset()
 
     def reset(self) -> None:
         self._period: Iterator[NDArray[np.float32]] = iter(())
         self._commanded = self.hold_action.copy()
+        self._last: tuple[tuple[int, ...], int] | None = None  # face, choice last period
+        self._stalled: set[tuple[tuple[int, ...], int]] = set()
 
     def support_face(self, observation: NDArray[np.float32]) -> tuple[int, ...]:
         return lowest_face(self._decode(observation).positions)
@@ -244,28 +275,57 @@ class FaceGait:
         """The table's action on ``face``; for a face off the cycle, that of the most
         similar face. Where the face has several (a steering gait) and ``positions``
         (n, 3), the nodes in the goal frame, are given: the one that goes furthest
-        toward the goal (:meth:`score`)."""
+        toward the goal (:meth:`score`), less those that left the robot on this face
+        (a stall: the model's move did not happen from this state) in this episode.
+        """
         choices = self._choices.get(face)
         if choices is None:
             choices = self._choices[max(self._choices, key=lambda f: len(set(f) & set(face)))]
         if positions is None or len(choices) == 1:
             return choices[0].action
         yaw = face_yaw(positions, face)
-        return max(choices, key=lambda c: self.score(c, yaw)).action
+        if self._last is not None and self._last[0] == face:  # the last period stalled
+            self._stalled.add(self._last)
+        open_ = [i for i in range(len(choices)) if (face, i) not in self._stalled]
+        if not open_:  # every move stalled here once: try them all again
+            self._stalled -= {(face, i) for i in range(len(choices))}
+            open_ = list(range(len(choices)))
+        best = max(open_, key=lambda i: self.score(choices[i], yaw))
+        self._last = (face, best)
+        return choices[best].action
 
-    def score(self, choice: _Choice, yaw: float) -> float:
+    def score(self, choice: _Choice, yaw: float, periods: int | None = None) -> float:
         """How far (m) toward the goal (the goal frame's x) ``choice`` carries the CoM
-        from a support triangle at ``yaw`` (rad, goal frame), followed by the best move
-        from the face it leaves the robot on: a two-period lookahead, so that a move
-        sideways that opens a fast one counts."""
-        if choice.move is None:
+        from a support triangle at ``yaw`` (rad, goal frame), followed by the best
+        ``periods - 1`` moves after it (the model's moves composed, each from the face
+        and yaw the one before leaves): a lookahead, so that a turn or a move sideways
+        that opens a fast way counts. ``periods`` None: :attr:`horizon`."""
+        periods = self.horizon if periods is None else periods
+        if choice.move is None or periods <= 0:
             return 0.0
-        ahead = turned(choice.move[:2], yaw)[0]
-        after = [c.move for c in self._choices.get(choice.to or (), ()) if c.move is not None]
-        if after:
-            next_yaw = yaw + choice.move[2]
-            ahead += max(float(turned(m[:2], next_yaw)[0]) for m in after)
-        return float(ahead)
+        ahead = float(turned(choice.move[:2], yaw)[0])
+        if choice.to is not None and periods > 1:
+            ahead += self._best_from(choice.to, yaw + float(choice.move[2]), periods - 1, {})
+        return ahead
+
+    def _best_from(
+        self, face: tuple[int, ...], yaw: float, periods: int, seen: dict[Any, float]
+    ) -> float:
+        """The most progress (m) ``periods`` moves make from ``face`` at ``yaw``; the
+        paths are memoised by face, periods and yaw to 2 degrees (``seen``), so that a
+        long horizon stays cheap (the faces are few)."""
+        key = (face, periods, round(yaw / _YAW_BIN))
+        if key in seen:
+            return seen[key]
+        best = -np.inf
+        c, s = math.cos(yaw), math.sin(yaw)
+        for x, y, turn, to in self._moves.get(face, ()):
+            value = x * c - y * s  # the move turned by yaw: its goal-frame x
+            if to is not None and periods > 1:
+                value += self._best_from(to, yaw + turn, periods - 1, seen)
+            best = max(best, value)
+        seen[key] = best = best if np.isfinite(best) else 0.0  # no move known: none
+        return best
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         command = next(self._period, None)
