@@ -42,7 +42,7 @@ import numpy as np
 from tensegrity_gym.model.description import DEFAULT_GAIT, DescriptionError, GaitFace
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Iterator
+    from collections.abc import Callable, Iterable, Iterator
 
     from numpy.typing import NDArray
 
@@ -155,6 +155,24 @@ class _Move(NamedTuple):
     turn: float
     to: tuple[int, ...] | None
 
+    @classmethod
+    def of(cls, move: NDArray[np.float64], to: tuple[int, ...] | None) -> _Move:
+        return cls(float(move[0]), float(move[1]), float(move[2]), to)
+
+
+def _choices(
+    entries: Iterable[GaitFace], hold_action: NDArray[np.float32]
+) -> dict[tuple[int, ...], list[_Choice]]:
+    """Each face's choices, in the gait's order: the entries' actions (m,) (contracted
+    cables at -1, the others at ``hold_action`` or let out to 1) and their moves."""
+    out: dict[tuple[int, ...], list[_Choice]] = {}
+    for e in entries:
+        a = hold_action.copy() if e.others == "hold" else np.ones_like(hold_action)
+        a[list(e.contract)] = -1.0
+        move = None if e.move is None else np.asarray(e.move, dtype=np.float64)
+        out.setdefault(e.face, []).append(_Choice(a, move, e.to))
+    return out
+
 
 class FaceGait:
     """A scripted policy that rolls the robot face to face.
@@ -172,7 +190,8 @@ class FaceGait:
         table: a face-to-action table, overriding the robot's.
         gait: the name of one of the robot's gaits (:attr:`RobotDescription.gaits`):
             ``"forward"`` (its YAML's ``gait``), or one of its ``gaits`` such as
-            ``"backward"``, ``"left"``, ``"right"``; ValueError naming those it has for
+            ``"backward"``, ``"left"``, ``"right"``, or ``"steer"`` (a steering gait,
+            which chooses its moves by the goal); ValueError naming those it has for
             another.
         hold_steps, settle_steps: control steps of the contraction and of the rest;
             ``None``: the robot's gait's (25 and 10 without one).
@@ -238,19 +257,10 @@ class FaceGait:
             if spec is not None and given is None
             else tuple(GaitFace(f, c, r) for f, (c, r) in table.items())
         )
-        self._choices: dict[tuple[int, ...], list[_Choice]] = {}
-        for e in entries:
-            a = self.hold_action.copy() if e.others == "hold" else np.ones(m, dtype=np.float32)
-            a[list(e.contract)] = -1.0
-            move = None if e.move is None else np.asarray(e.move, dtype=np.float64)
-            self._choices.setdefault(e.face, []).append(_Choice(a, move, e.to))
+        self._choices = _choices(entries, self.hold_action)
         # The lookahead's moves as plain floats: it weighs thousands of paths a choice.
-        self._moves: dict[tuple[int, ...], list[_Move]] = {
-            face: [
-                _Move(float(c.move[0]), float(c.move[1]), float(c.move[2]), c.to)
-                for c in cs
-                if c.move is not None
-            ]
+        self._moves = {
+            face: [_Move.of(c.move, c.to) for c in cs if c.move is not None]
             for face, cs in self._choices.items()
         }
         self.reset()
