@@ -235,10 +235,14 @@ def _checks(
         if steering is not None:
             g = steering["progress_mean_m"]
             checks[name]["steering_progress_m"] = g
-            checks[name]["progress_vs_steering"] = (
-                round(row["progress_mean_m"] / g, 2) if g > 0 else None
-            )
+            checks[name]["progress_vs_steering"] = _share(row["progress_mean_m"], g)
     return checks
+
+
+def _share(mine: float, theirs: float) -> float | None:
+    """``mine`` as a share of a baseline's progress ``theirs`` (m), rounded; None where
+    the baseline went nowhere or backwards (a share of that would read as a small one)."""
+    return round(mine / theirs, 2) if theirs > 0 else None
 
 
 def _against_gait(mine: float, gait: dict[str, Any]) -> dict[str, Any]:
@@ -247,7 +251,7 @@ def _against_gait(mine: float, gait: dict[str, Any]) -> dict[str, Any]:
     read as a small one), whether it meets :data:`TARGET_GAIT_SHARE` (judged on the
     share as printed), and the share of the distance the gait rolled its own way."""
     g, distance = gait["progress_mean_m"], gait["distance_mean_m"]
-    share = round(mine / g, 2) if g > 0 else None
+    share = _share(mine, g)
     return {
         "gait_progress_m": g,
         "progress_vs_gait": share,
@@ -267,7 +271,7 @@ def _met(flag: bool) -> str:
 def check_sentence(check: dict[str, Any]) -> str:
     """A trained policy's check (:func:`_checks`) as a sentence: its progress against a
     random policy's, its rolls and, where the robot has a gait, against the gait's, each
-    with its target."""
+    with its target; where it has a steering gait, the share of that gait's progress."""
     return (
         f"{check['progress_vs_random']}x the progress of a random policy (target "
         f"{TARGET_PROGRESS_RATIO:g}x: {_met(check['progress_target_met'])}), "
@@ -283,7 +287,7 @@ def _steering_share(check: dict[str, Any]) -> str:
         return ""
     g = check["steering_progress_m"]
     return f" The steering gait made {g:.2f} m toward the goal" + (
-        f": the policy {share:.0%} of it." if share is not None else "."
+        f"; the policy made {share:.0%} of that." if share is not None else "."
     )
 
 

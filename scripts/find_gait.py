@@ -1,7 +1,8 @@
 """Search a face-to-face rolling gait for a robot preset (a developer tool).
 
     python scripts/find_gait.py three_bar_large [--direction forward|backward]
-        [--turn left|right [--candidates 6]] [--seeds 0 1 2 3] [--max-combo 3]
+        [--turn left|right [--candidates 6]] [--steer [--per-pair 2]]
+        [--seeds 0 1 2 3] [--max-combo 3]
         [--hold 25] [--settle 10] [--ramp 0] [--steps 600] [--restarts 4] [--cache FILE]
 
 The robot starts as an episode does (``reset(seed)``, on the simulator's ground truth)
@@ -31,6 +32,11 @@ face's choices and the search starts again (``--restarts``). The objectives:
   seed, run, and the one whose worst seed turns most (degrees a period, from the
   support triangle's yaw on its most visited face, times the CoM's metres a period)
   is kept. A rolling prism's path zig-zags; a cycle with a net rotation turns.
+- ``--steer``: a steering gait, no table: the same model, from the first seed's reset,
+  each face keeping up to ``--per-pair`` distinct outcomes (the most common first) for
+  every face it leads to, those that move the CoM at least half of MIN_MOVE, each with
+  its move in the face's frame and the face it leads to (FaceGait chooses among them by
+  the goal). Printed as ``gaits: {steer: ...}``; nothing is run in closed loop.
 
 Where a sequence of actions from a reset leaves the robot is cached, in memory and in
 ``--cache`` (JSON, reused by a later run with the same robot and timing, so that the
@@ -299,10 +305,10 @@ def steering(
     actuated = [d.cables[int(k)].name for k in d.actuated]
     faces = []
     for (face, to), ks in sorted(options(model).items()):
-        for k in ks[:per_pair]:
+        # A shuffle on the spot steers nowhere: it takes no place of the pair's.
+        moving = [k for k in ks if float(np.linalg.norm(model[face, k][1][:2])) >= MIN_MOVE / 2]
+        for k in moving[:per_pair]:
             move = model[face, k][1]
-            if float(np.linalg.norm(move[:2])) < MIN_MOVE / 2:
-                continue  # a shuffle on the spot steers nowhere
             faces.append(
                 {
                     "face": [d.nodes[i].name for i in face],
@@ -314,6 +320,21 @@ def steering(
             )
     steps = {"hold_steps": sim.hold_steps, "settle_steps": sim.settle_steps}
     return {**steps, **({"ramp_steps": sim.ramp_steps} if sim.ramp_steps else {}), "faces": faces}
+
+
+def steer_section(args: argparse.Namespace, sim: Rollouts) -> str:
+    """The ``gaits: steer:`` section (YAML, under a comment that says how it was found)
+    from the model of every face's transitions (:func:`explore`); closes ``sim``."""
+    section_ = steering(sim, explore(sim), args.per_pair)
+    sim.close()
+    flags = (
+        f"--steer --max-combo {args.max_combo} --per-pair {args.per_pair} --hold {args.hold} "
+        f"--settle {args.settle} --ramp {args.ramp} --seeds {sim.seed}"
+    )
+    text = yaml.safe_dump(
+        {"gaits": {"steer": section_}}, sort_keys=False, default_flow_style=None, width=100
+    )
+    return f"# steer: found by scripts/find_gait.py {args.robot} {flags}.\n{text}"
 
 
 def turning_cycles(
@@ -516,19 +537,16 @@ def main() -> None:
         else {}
     )
     cache = doc.get("outcomes", {}) if doc.get("meta") == meta else {}
-    sims = [Rollouts(args, seed, cache.setdefault(str(seed), {})) for seed in args.seeds]
-    if args.steer:
-        section_ = steering(sims[0], explore(sims[0]), args.per_pair)
-        if args.cache is not None:
-            Path(args.cache).write_text(json.dumps({"meta": meta, "outcomes": cache}))
-        seed = args.seeds[0]
-        print(f"# steer: found by scripts/find_gait.py {args.robot} --steer --seeds {seed}.")
+    if args.steer:  # a model from the first seed's reset alone
         print(
-            yaml.safe_dump(
-                {"gaits": {"steer": section_}}, sort_keys=False, default_flow_style=None, width=100
+            steer_section(
+                args, Rollouts(args, args.seeds[0], cache.setdefault(str(args.seeds[0]), {}))
             )
         )
+        if args.cache is not None:
+            Path(args.cache).write_text(json.dumps({"meta": meta, "outcomes": cache}))
         return
+    sims = [Rollouts(args, seed, cache.setdefault(str(seed), {})) for seed in args.seeds]
     has_gait = sims[0].description.gait is not None
     forward = [closed_loop(args, None, seed) for seed in args.seeds] if has_gait else None
     table, runs = find(args, sims, forward)

@@ -161,7 +161,6 @@ def test_named_gaits_load_and_round_trip() -> None:
     assert loads_robot(dump_robot(d)) == d
     three_bar = load_robot("three_bar")
     assert list(three_bar.gaits) == ["forward", "steer"]  # its gait first, then gaits:
-    assert list(replace(three_bar, named_gaits=()).gaits) == ["forward"]
     assert three_bar.gait is not None and three_bar.gait.ramp_steps == 11
     assert loads_robot(dump_robot(three_bar)) == three_bar  # ramp_steps round-trips
     assert replace(d, gait=None).gaits.keys() == {"backward", "left", "right"}

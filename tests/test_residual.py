@@ -84,6 +84,20 @@ def test_the_residual_env_passes_gymnasiums_checks() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
+        ({"base_gait": "steer"}, r"^make: base_gait='steer' names .*give residual_gait"),
+        ({"residual_gait": 0.5, "base_gait": 3}, r"^make: base_gait must be a gait's name"),
+    ],
+)
+def test_a_base_gait_without_residual_actions_is_refused(
+    kwargs: dict[str, object], message: str
+) -> None:
+    with pytest.raises(ValueError, match=message):
+        gym.make(THREE_BAR, estimator="oracle", **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
         ({"residual_gait": 0.0}, "residual_gait=0.0 must be a finite number and > 0"),
         ({"residual_gait": "big"}, "residual_gait='big' must be a finite number"),
         (
@@ -116,15 +130,21 @@ def test_a_policy_trained_on_residual_actions_is_evaluated_on_them(tmp_path: Pat
         seed=1,
         config_file=config,
         progress_bar=False,
-        env_kwargs={"max_episode_steps": 16, "residual_gait": 0.25, "ctrl_cost": 0.0},
+        env_kwargs={
+            "max_episode_steps": 16,
+            "residual_gait": 0.25,
+            "base_gait": "steer",
+            "ctrl_cost": 0.0,
+        },
     )
     policy = load_policy(out)
     # what its actions mean goes with it; its reward and episode length were its
     # training's: every row of an evaluation runs on the env id's own task
-    assert policy.env_kwargs == {"residual_gait": 0.25}
+    assert policy.env_kwargs == {"residual_gait": 0.25, "base_gait": "steer"}
     try:
         env = _condition_env(policy.env_id, condition("oracle"), policy.env_kwargs).unwrapped
         assert isinstance(env.action_base, FaceGait) and env.residual_scale == 0.25  # type: ignore[attr-defined]
+        assert env.action_base.gait == "steer"  # type: ignore[attr-defined]
         assert isinstance(env.action_base, ActionBase)  # type: ignore[attr-defined]
         assert env.task.ctrl_cost == 0.05  # type: ignore[attr-defined]
         plain = _condition_env(policy.env_id, condition("oracle"), {}).unwrapped

@@ -514,4 +514,4 @@ def test_a_policy_is_set_against_the_steering_gait_where_there_is_one(
     assert check["steering_progress_m"] == steering and check["progress_vs_steering"] == share
     sentence = check_sentence(check)
     assert f"steering gait made {steering:.2f} m" in sentence
-    assert ("80% of it" in sentence) is (share is not None)
+    assert ("the policy made 80% of that" in sentence) is (share is not None)

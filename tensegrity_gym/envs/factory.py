@@ -262,9 +262,10 @@ def make_env(
             do better). The robot must have a gait. ``ctrl_cost`` then charges the
             policy's correction (before the scale), not the command: the gait's own
             commands cost nothing.
-        base_gait: the name of the gait residual actions correct (one of the robot's
-            :attr:`~tensegrity_gym.model.description.RobotDescription.gaits`):
-            ``"forward"``, or ``"steer"``, which rolls toward the task's goal.
+        base_gait: the name of the gait residual actions correct, any of the robot's
+            :attr:`~tensegrity_gym.model.description.RobotDescription.gaits`:
+            ``"forward"`` (the default), or ``"steer"``, which rolls toward the task's
+            goal; another than ``"forward"`` only with ``residual_gait``.
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -283,13 +284,7 @@ def make_env(
         driver=driver,
     )
     check_calibration(calibration, world_seed)
-    if residual_gait is not None:
-        check_number("residual_gait", residual_gait, positive=True)
-        if base_gait not in description.gaits:
-            raise ValueError(
-                f"make: base_gait: residual_gait corrects the robot's gait {base_gait!r}; "
-                f"{description.name}'s gaits: {sorted(description.gaits) or 'none'}"
-            )
+    _check_residual(description, residual_gait, base_gait)
     ranges = resolve_randomization(randomization)
     # The task checks its own arguments before anything is started.
     spec.create(description, control_period, task_arguments)
@@ -319,6 +314,26 @@ def make_env(
     except BaseException:
         backend.close()  # nothing half made stays open: a simulator, a link session
         raise
+
+
+def _check_residual(
+    description: RobotDescription, residual_gait: float | None, base_gait: str
+) -> None:
+    """Refuse residual actions' arguments that cannot be (see :func:`make_env`)."""
+    if not isinstance(base_gait, str):
+        raise ValueError(f"make: base_gait must be a gait's name, got {base_gait!r}")
+    if residual_gait is None and base_gait != DEFAULT_GAIT:
+        raise ValueError(
+            f"make: base_gait={base_gait!r} names the gait residual actions correct; "
+            "give residual_gait (the correction's scale) too"
+        )
+    if residual_gait is not None:
+        check_number("residual_gait", residual_gait, positive=True)
+        if base_gait not in description.gaits:
+            raise ValueError(
+                f"make: base_gait: residual_gait corrects the robot's gait {base_gait!r}; "
+                f"{description.name}'s gaits: {sorted(description.gaits) or 'none'}"
+            )
 
 
 def _assemble(

@@ -60,9 +60,9 @@ _DISPLAY_NAME = re.compile(r"[A-Z][A-Za-z0-9]*\Z")
 _GAIT_NAME = re.compile(r"[a-z][a-z0-9_-]*\Z")
 
 DEFAULT_GAIT = "forward"
+"""The name of a robot's default gait: its YAML's ``gait`` (:attr:`RobotDescription.gait`)."""
 STEER_GAIT = "steer"
 """The name of a robot's steering gait (``scripts/find_gait.py --steer``), if it has one."""
-"""The name of a robot's default gait: its YAML's ``gait`` (:attr:`RobotDescription.gait`)."""
 
 # A rod whose nodes are placed further from its length than this cannot be assembled.
 _ASSEMBLY_TOLERANCE = 0.01  # relative
@@ -256,7 +256,9 @@ class GaitFace:
     move: tuple[float, float, float] | None = None
     """The CoM's move over the gait period in the face's frame: x (m) from the support
     triangle's centre toward its first node (lowest index), y (m) 90° counter-clockwise
-    of it, and the triangle's yaw change (rad, counter-clockwise); None: not known."""
+    of it, and the turn (rad, counter-clockwise): the yaw of ``to``'s triangle (the same
+    way, from its centre to its lowest-index node) less this one's, wrapped to
+    [-pi, pi); None: not known."""
     to: tuple[int, ...] | None = None
     """The support face the period leaves the robot on (sorted node indices, (3,))."""
 
@@ -671,7 +673,11 @@ def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str =
         move = None if "move" not in f else _move(r.vector(f["move"], f"{q}.move", 3))
         to = None if "to" not in f else _face(r, f["to"], f"{q}.to", node_index)
         if (move is None) != (to is None):
-            raise r.fail(q, "a steering entry gives both 'move' and 'to', or neither")
+            missing = "to" if to is None else "move"
+            raise r.fail(f"{q}.{missing}", "missing: a steering entry gives both 'move' "
+                         "and 'to', or neither")  # fmt: skip
+        if to is not None and to == face:
+            raise r.fail(f"{q}.to", "a move leads to another face than its own")
         if any(face == o.face and (move is None or o.move is None) for o in faces):
             raise r.fail(f"{q}.face", "this face has an entry already (only steering "
                          "entries, with 'move' and 'to', may share a face)")  # fmt: skip
