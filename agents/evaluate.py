@@ -33,7 +33,6 @@ if TYPE_CHECKING:
     from agents.cluster import Executor
     from tensegrity_gym.envs.roll_env import TensegrityEnv
     from tensegrity_gym.model.description import RobotDescription
-    from tensegrity_gym.tasks.roll import RollTask
 
 __all__ = [
     "BASELINES",
@@ -200,7 +199,9 @@ def count_rolls(node_z: NDArray[np.float64], hold: int = 3) -> int:
 @dataclass
 class EpisodeResult:
     progress: float
-    """True CoM displacement along the goal heading (m)."""
+    """True CoM progress (m): along the goal heading (roll), or the approach to the goal
+    points, each counted up to the step that reached it (goto); see
+    :func:`true_progress`."""
     rolls: int
     success: bool
     com_error_mean: float
@@ -347,12 +348,36 @@ def gait_policy(env_id: str, name: str = GAIT_POLICY) -> LoadedPolicy | None:
     return LoadedPolicy(name, env_id, "-", gait, lambda _seed: gait.reset())
 
 
+MEASURED_TASKS = ("roll", "goto")
+"""The tasks whose progress :func:`true_progress` measures."""
+
+
+def true_progress(
+    true: NDArray[np.float64],
+    heading: NDArray[np.float64] | None,
+    goals: NDArray[np.float64] | None = None,
+) -> float:
+    """The true CoM's progress (m) over an episode, ``true`` (T + 1, 3) its positions:
+    toward goal points where ``goals`` (T, 2) gives the one in force at each step (the
+    step that reaches a goal counts toward it, the next toward the next: a go-to task's
+    goals one after another), else its displacement along ``heading`` (2,)."""
+    if goals is not None:
+        before = np.linalg.norm(goals - true[:-1, :2], axis=1)
+        after = np.linalg.norm(goals - true[1:, :2], axis=1)
+        return float(np.sum(before - after))
+    if heading is None:
+        raise ValueError("true_progress: give the goal heading or the goals")
+    return float((true[-1, :2] - true[0, :2]) @ heading)
+
+
 def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> EpisodeResult:
     inner = cast("TensegrityEnv", env.unwrapped)
     d = inner.backend.description
     obs, info = env.reset(seed=seed)
-    # A rolling id's task: the goal heading drawn (or fixed) at reset.
-    goal = cast("RollTask", inner.task).direction.copy()
+    # A rolling id's task: the goal heading drawn (or fixed) at reset; a go-to id's: the
+    # goal point in force before each step (info["goal"]).
+    heading = getattr(inner.task, "direction", None)
+    goals: list[Any] | None = [] if "goal" in info else None
     true_path, est_path, node_z = [info["com_true"]], [info["com_estimate"]], []
     truth = inner.backend.ground_truth()
     assert truth is not None
@@ -360,12 +385,15 @@ def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> E
     total, reinit, diverged = 0.0, 0, False
     done = False
     while not done:
+        goal_before = info.get("goal")
         obs, reward, terminated, truncated, info = env.step(act(obs))
         total += float(reward)
         reinit += int(info["estimator_reinitialised"])
         if info["sim_diverged"]:
             diverged = True
             break
+        if goals is not None:
+            goals.append(goal_before)
         true_path.append(info["com_true"])
         est_path.append(info["com_estimate"])
         truth = inner.backend.ground_truth()
@@ -374,7 +402,7 @@ def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> E
         done = terminated or truncated
     true = np.array(true_path)
     est = np.array(est_path)
-    progress = float((true[-1, :2] - true[0, :2]) @ goal)
+    progress = true_progress(true, heading, None if goals is None else np.array(goals))
     errors = np.linalg.norm(est - true, axis=-1)
     return EpisodeResult(
         progress=progress,
@@ -415,11 +443,12 @@ def evaluate_policies(
     ``executor`` (default: here, one after the other; an :class:`agents.cluster.RayExecutor`
     runs them as Ray tasks, with the same results: an episode depends on its seed alone)."""
     for policy in policies:
-        spec_kwargs = gym.spec(policy.env_id).kwargs
-        if spec_kwargs.get("task", "roll") != "roll":
+        task = gym.spec(policy.env_id).kwargs.get("task", "roll")
+        if task not in MEASURED_TASKS:
             raise ValueError(
-                f"{policy.env_id}: evaluate measures progress along a goal heading, the Roll "
-                f"task's; it does not evaluate the {spec_kwargs['task']!r} task yet"
+                f"{policy.env_id}: evaluate measures progress along a goal heading (the "
+                f"'roll' task) or toward goal points ('goto'); it does not evaluate the "
+                f"{task!r} task"
             )
     from agents.cluster import LocalExecutor
 

@@ -349,7 +349,9 @@ def _markdown(report: dict[str, Any], training_plot: bool) -> str:
         "",
         f"{report['episodes']} episodes per policy and condition (seeds {report['seed']}..."
         f"{report['seed'] + report['episodes'] - 1}, the same for every row). Progress is the "
-        "true CoM's displacement along the goal heading over the episode; success is a "
+        "true CoM's displacement along the goal heading over the episode (a Roll id), or "
+        "its approach to the goal points, each up to the step that reached it (a GoTo id); "
+        "success is a "
         "progress of at least one rod length; distance is its straight-line displacement in "
         "whatever direction; a roll is a tip onto a new base triangle.",
         "",

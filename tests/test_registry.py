@@ -146,9 +146,22 @@ def test_estimate_on_a_bag_without_what_the_estimator_needs_is_one_line(
 
 
 def test_evaluate_refuses_a_task_it_cannot_measure_in_one_line() -> None:
-    policy = random_policy("tensegrity_gym/ThreeBarGoTo-v0", 0)
-    with pytest.raises(ValueError, match="does not evaluate the 'goto' task"):
-        evaluate_policy(policy, condition("oracle"), episodes=1)
+    import gymnasium as gym
+
+    from agents.evaluate import LoadedPolicy
+
+    roll = gym.spec("tensegrity_gym/ThreeBarRoll-v0")
+    gym.register(
+        "tensegrity_gym/ThreeBarStandStill-v0",
+        entry_point=roll.entry_point,
+        kwargs={**roll.kwargs, "task": "stand_still"},
+    )
+    try:
+        policy = LoadedPolicy("still", "tensegrity_gym/ThreeBarStandStill-v0", "-", lambda o: o)
+        with pytest.raises(ValueError, match=r"does not evaluate the 'stand_still' task$"):
+            evaluate_policy(policy, condition("oracle"), episodes=1)
+    finally:
+        del gym.registry["tensegrity_gym/ThreeBarStandStill-v0"]
 
 
 def test_the_simulator_says_exactly_the_kinds_it_produces() -> None:

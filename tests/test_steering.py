@@ -14,7 +14,14 @@ import numpy as np
 import pytest
 import yaml
 
-from agents.evaluate import GAIT_POLICY, STEER_POLICY, gait_policy
+from agents.evaluate import (
+    GAIT_POLICY,
+    STEER_POLICY,
+    condition,
+    evaluate_policy,
+    gait_policy,
+    true_progress,
+)
 from agents.train import load_hyperparams
 from tensegrity_gym.envs.factory import make_env, make_roll_env
 from tensegrity_gym.model.description import (
@@ -248,3 +255,34 @@ def test_the_long_runs_config_explores_with_small_plain_noise(env_id: str, width
     assert params["use_sde"] is False and params["n_timesteps"] == 81920
     assert params["policy_kwargs"]["log_std_init"] == -3.0
     assert params["policy_kwargs"]["net_arch"]["pi"] == [width, width]
+
+
+def test_true_progress_toward_goal_points_counts_each_goal_to_where_it_was_reached() -> None:
+    true = np.array([[0.0, 0, 0], [1.0, 0, 0], [1.0, 1, 0], [1.0, 2, 0]])
+    goals = np.array([[1.0, 0], [1.0, 3], [1.0, 3]])  # the first reached on step 1
+    assert true_progress(true, None, goals) == pytest.approx(1.0 + 1.0 + 1.0)
+    assert true_progress(true, np.array([0.0, 1.0])) == pytest.approx(2.0)
+    with pytest.raises(ValueError, match="heading or the goals"):
+        true_progress(true, None)
+
+
+def test_evaluate_measures_the_goto_task_as_the_task_does_on_truth() -> None:
+    # Under the oracle the task's own progress is the truth's, but for the goals reached:
+    # the task counts each one's whole distance, the truth up to where it was reached
+    # (within the success radius).
+    steering = gait_policy("tensegrity_gym/ThreeBarGoTo-v0", STEER_POLICY)
+    assert steering is not None
+    (result,) = evaluate_policy(steering, condition("oracle"), episodes=1, seed=1)
+    env = make_env("three_bar", "goto", estimator="oracle")
+    policy = FaceGait(env.backend.description, env.task, gait=STEER_GAIT)
+    obs, info = env.reset(seed=1)
+    path, goals = [info["com_true"]], []
+    for _ in range(600):  # the id's episode
+        goals.append(info["goal"])
+        obs, _, _, _, info = env.step(policy(obs))
+        path.append(info["com_true"])
+    env.close()
+    assert result.progress == pytest.approx(true_progress(np.array(path), None, np.array(goals)))
+    reached, radius = info["goals_reached"], env.task.success_radius
+    assert info["progress"] - reached * radius <= result.progress <= info["progress"] + 1e-9
+    assert result.progress > 0.5
