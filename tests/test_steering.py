@@ -286,3 +286,27 @@ def test_evaluate_measures_the_goto_task_as_the_task_does_on_truth() -> None:
     reached, radius = info["goals_reached"], env.task.success_radius
     assert info["progress"] - reached * radius <= result.progress <= info["progress"] + 1e-9
     assert result.progress > 0.5
+
+
+def test_gait_noise_measures_the_gait_itself_at_zero_noise() -> None:
+    import importlib.util
+
+    import gymnasium as gym
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "gait_noise.py"
+    spec = importlib.util.spec_from_file_location("gait_noise", path)
+    assert spec is not None and spec.loader is not None
+    gait_noise = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gait_noise)
+    env = gym.make(
+        "tensegrity_gym/ThreeBarRoll-v0",
+        estimator="oracle",
+        residual_gait=0.5,
+        base_gait=STEER_GAIT,
+        max_episode_steps=140,
+    )
+    steering = _progress("roll", STEER_GAIT, 1000, 140, goal_heading=0.0)
+    assert gait_noise.progress(env, 0.0, 1000) == pytest.approx(steering, abs=1e-9)
+    noisy = [gait_noise.progress(env, 0.5, 1000) for _ in range(2)]
+    assert noisy[0] == noisy[1] != pytest.approx(steering)  # seeded by the episode
+    env.close()
