@@ -324,9 +324,14 @@ class FaceGait:
         periods = self.horizon if periods is None else periods
         if choice.move is None or periods <= 0:
             return 0.0
-        ahead = float(turned(choice.move[:2], yaw)[0])
-        if choice.to is not None and periods > 1:
-            ahead += self._best_from(choice.to, yaw + float(choice.move[2]), periods - 1, {})
+        return self._path(_Move.of(choice.move, choice.to), yaw, periods, {})
+
+    def _path(self, move: _Move, yaw: float, periods: int, seen: dict[Any, float]) -> float:
+        """The progress (m) of ``move`` from a triangle at ``yaw``, then of the best
+        ``periods - 1`` moves from the face it leads to (:meth:`_best_from`)."""
+        ahead = move.x * math.cos(yaw) - move.y * math.sin(yaw)  # its goal-frame x
+        if move.to is not None and periods > 1:
+            ahead += self._best_from(move.to, yaw + move.turn, periods - 1, seen)
         return ahead
 
     def _best_from(
@@ -336,17 +341,10 @@ class FaceGait:
         paths are memoised by face, periods and yaw to 2 degrees (``seen``), so that a
         long horizon stays cheap (the faces are few)."""
         key = (face, periods, round(yaw / _YAW_BIN))
-        if key in seen:
-            return seen[key]
-        best = -np.inf
-        c, s = math.cos(yaw), math.sin(yaw)
-        for x, y, turn, to in self._moves.get(face, ()):
-            value = x * c - y * s  # the move turned by yaw: its goal-frame x
-            if to is not None and periods > 1:
-                value += self._best_from(to, yaw + turn, periods - 1, seen)
-            best = max(best, value)
-        seen[key] = best = best if np.isfinite(best) else 0.0  # no move known: none
-        return best
+        if key not in seen:
+            paths = [self._path(m, yaw, periods, seen) for m in self._moves.get(face, ())]
+            seen[key] = max(paths, default=0.0)  # no move known: none
+        return seen[key]
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         """The command for this control step. As a period begins, the support face
