@@ -56,11 +56,12 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-ACTION_KWARGS = ("residual_gait", "base_gait")
-"""The ``gym.make`` arguments of a training run that say what its actions mean: its
-policy is evaluated with them. Its others (``train --env-kwargs``: its task's reward,
-its terrain) shaped its training only: every policy and baseline of an evaluation runs
-on the env id's own task and worlds, so that the rows compare."""
+ACTION_KWARGS = ("residual_gait", "base_gait", "observe_base")
+"""The ``gym.make`` arguments of a training run that say what its actions and
+observations mean: its policy is evaluated with them. Its others (``train
+--env-kwargs``: its task's reward, its terrain) shaped its training only: every policy
+and baseline of an evaluation runs on the env id's own task and worlds, so that the
+rows compare."""
 
 RANDOM_POLICY = "random"
 GAIT_POLICY = "scripted gait"
@@ -277,7 +278,9 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
         model = classes[algo].load(model_file, device="cpu")
     except Exception as err:  # a corrupted zip fails in many ways inside SB3
         raise ValueError(f"{model_file}: cannot load a {algo} model: {err}") from None
-    env = gym.make(env_id, estimator="oracle")
+    env_kwargs = config.get("env_kwargs") or {}
+    actions = {k: env_kwargs[k] for k in ACTION_KWARGS if env_kwargs.get(k) is not None}
+    env = gym.make(env_id, estimator="oracle", **actions)
     space = env.observation_space
     env.close()
     if model.observation_space.shape != space.shape:
@@ -300,10 +303,8 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
     files = [f for f in (model_file, config_file, stats_file) if f.exists()]
     saved = {f.name: f.read_bytes() for f in files}
     # The report says which worlds a policy trained in (gym.make's randomization).
-    env_kwargs = config.get("env_kwargs") or {}
     worlds = env_kwargs.get("randomization")
     default = f"trained on {trained_on}" + (f" in {worlds} worlds" if worlds else "")
-    actions = {k: env_kwargs[k] for k in ACTION_KWARGS if env_kwargs.get(k) is not None}
     return LoadedPolicy(name or default, env_id, trained_on, act, env_kwargs=actions, saved=saved)
 
 

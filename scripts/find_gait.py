@@ -1,7 +1,7 @@
 """Search a face-to-face rolling gait for a robot preset (a developer tool).
 
     python scripts/find_gait.py three_bar_large [--direction forward|backward]
-        [--turn left|right [--candidates 6]] [--steer [--per-pair 2]]
+        [--turn left|right [--candidates 6]] [--steer [--per-pair 2] [--starts 3] [--share 0.6]]
         [--seeds 0 1 2 3] [--max-combo 3]
         [--hold 25] [--settle 10] [--ramp 0] [--steps 600] [--restarts 4] [--cache FILE]
 
@@ -32,11 +32,15 @@ face's choices and the search starts again (``--restarts``). The objectives:
   seed, run, and the one whose worst seed turns most (degrees a period, from the
   support triangle's yaw on its most visited face, times the CoM's metres a period)
   is kept. A rolling prism's path zig-zags; a cycle with a net rotation turns.
-- ``--steer``: a steering gait, no table: the same model, from the first seed's reset,
-  each face keeping up to ``--per-pair`` distinct outcomes (the most common first) for
-  every face it leads to, those that move the CoM at least half of MIN_MOVE, each with
-  its move in the face's frame and the face it leads to (FaceGait chooses among them by
-  the goal). Printed as ``gaits: {steer: ...}``; nothing is run in closed loop.
+- ``--steer``: a steering gait, no table: the same model, from the first seed's reset.
+  Each distinct outcome is run again from up to ``--starts`` resting states on its face
+  (the robot arrived from its other neighbours) and kept where it leads to the same
+  face from at least ``--share`` of them, with its mean move (a marginal tumble, which
+  a policy's corrections or a real robot's motors tip the other way, is dropped). Each
+  face keeps up to ``--per-pair`` of those (the most common first) for every face it
+  leads to, those that move the CoM at least half of MIN_MOVE, each with its move in
+  the face's frame and the face it leads to (FaceGait chooses among them by the goal).
+  Printed as ``gaits: {steer: ...}``; nothing is run in closed loop.
 
 Where a sequence of actions from a reset leaves the robot is cached, in memory and in
 ``--cache`` (JSON, reused by a later run with the same robot and timing, so that the
@@ -75,6 +79,7 @@ from tensegrity_gym.tasks.gaits import turned as rotated
 Face = tuple[int, ...]
 Route = tuple[int, ...]  # candidate indices run one period each from the reset
 Table = dict[Face, int]  # face -> candidate index
+Model = dict[tuple[Face, int], tuple[Face, np.ndarray]]  # see explore
 TRAVEL = 5.0  # m of CoM path the evaluation's runs need (papers/002, table II)
 MIN_MOVE = 0.1  # m a gait period the model's turning cycles carry the CoM at least
 CACHE_VERSION = 3
@@ -245,28 +250,77 @@ def search(
         banned.add(stalled)
 
 
-def explore(sim: Rollouts) -> dict[tuple[Face, int], tuple[Face, np.ndarray]]:
+def transition(sim: Rollouts, path: Route, k: int) -> tuple[Face, np.ndarray]:
+    """Where candidate ``k`` run after ``path`` leaves the robot: (new face, the move in
+    the frame of the face ``path`` ends on: CoM x, y in m along and across its
+    triangle's yaw, the yaw's change in rad)."""
+    _, com, yaw = sim.outcome(path)
+    to, c, y = sim.outcome((*path, k))
+    turn = (y - yaw + np.pi) % (2.0 * np.pi) - np.pi
+    return to, np.array([*rotated(c - com, -yaw), turn])
+
+
+def explore(sim: Rollouts) -> tuple[Model, dict[Face, Route]]:
     """Every candidate from a resting state on every face the robot reaches from the
-    reset (the first state found on it): (face, candidate) -> (new face, the move in
-    the face's frame: CoM x, y in m along and across its triangle's yaw, the yaw's
-    change in rad)."""
+    reset (the first state found on it): the model, (face, candidate) ->
+    :func:`transition`, and the path that first reached each face."""
     paths: dict[Face, Route] = {sim.outcome(())[0]: ()}
-    model: dict[tuple[Face, int], tuple[Face, np.ndarray]] = {}
+    model: Model = {}
     queue = list(paths)
     while queue:
         face = queue.pop(0)
-        _, com, yaw = sim.outcome(paths[face])
         for k in range(len(sim.tried)):
-            to, c, y = sim.outcome((*paths[face], k))
+            to, move = transition(sim, paths[face], k)
             if to == face:
                 continue
-            turn = (y - yaw + np.pi) % (2.0 * np.pi) - np.pi
-            model[face, k] = (to, np.array([*rotated(c - com, -yaw), turn]))
+            model[face, k] = (to, move)
             if to not in paths:
                 paths[to] = (*paths[face], k)
                 queue.append(to)
         print(f"# explored {face}: {len(paths)} faces so far", file=sys.stderr)
-    return model
+    return model, paths
+
+
+def arrivals(model: Model, paths: dict[Face, Route], face: Face, count: int) -> list[Route]:
+    """Up to ``count`` paths that leave the robot resting on ``face`` in different states:
+    the first that reached it, then one by way of each other face the model says leads
+    to it (each arrives from its own side, its cables in their own state)."""
+    first = paths[face]
+    out, sides = [first], {f for f, path in paths.items() if first and path == first[:-1]}
+    for (f, k), (to, _) in sorted(model.items()):
+        if len(out) >= count:
+            break
+        if to == face and f not in sides:
+            out.append((*paths[f], k))
+            sides.add(f)
+    return out
+
+
+def mean_move(moves: np.ndarray) -> np.ndarray:
+    """The mean of planar moves (k, 3) (x, y in m, turn in rad): the turns' circular
+    mean, so that turns of +179 and -179 degrees average to 180, not 0."""
+    turn = np.arctan2(np.sin(moves[:, 2]).mean(), np.cos(moves[:, 2]).mean())
+    return np.array([*moves[:, :2].mean(axis=0), turn])
+
+
+def robust(
+    sim: Rollouts, model: Model, paths: dict[Face, Route], starts: int, share: float
+) -> Model:
+    """The model's distinct outcomes (:func:`options`) run again from up to ``starts``
+    resting states on their face (:func:`arrivals`): those that leave the robot on the
+    same new face from at least ``share`` of them, each with its mean move there (a
+    real robot, or a policy's corrections, never start a move from one state alone)."""
+    kept: Model = {}
+    for (face, to), ks in options(model).items():
+        starts_ = [p for p in arrivals(model, paths, face, starts) if sim.outcome(p)[0] == face]
+        held = 0
+        for k in ks:
+            landed = [m for t, m in (transition(sim, p, k) for p in starts_) if t == to]
+            if landed and len(landed) >= share * len(starts_):
+                kept[face, k] = (to, mean_move(np.array(landed)))
+                held += 1
+        print(f"# {face} -> {to}: {held} of {len(ks)} held", file=sys.stderr)
+    return kept
 
 
 def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -275,7 +329,7 @@ def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def options(
-    model: dict[tuple[Face, int], tuple[Face, np.ndarray]],
+    model: Model,
 ) -> dict[tuple[Face, Face], list[int]]:
     """Per pair of faces, one candidate per distinct outcome (moves 0.1 m and 0.2 rad
     apart), the most common outcomes first, eight at most."""
@@ -294,9 +348,7 @@ def options(
     }
 
 
-def steering(
-    sim: Rollouts, model: dict[tuple[Face, int], tuple[Face, np.ndarray]], per_pair: int
-) -> dict[str, Any]:
+def steering(sim: Rollouts, model: Model, per_pair: int) -> dict[str, Any]:
     """A steering gait's section: for every face, the ``per_pair`` most common distinct
     outcomes (:func:`options`) of every face it leads to, each with its move (CoM x, y in
     m in the face's frame, the yaw's change in rad) and the face it leaves the robot on,
@@ -325,10 +377,12 @@ def steering(
 def steer_section(args: argparse.Namespace, sim: Rollouts) -> str:
     """The ``gaits: steer:`` section (YAML, under a comment that says how it was found)
     from the model of every face's transitions (:func:`explore`); closes ``sim``."""
-    section_ = steering(sim, explore(sim), args.per_pair)
+    model, paths = explore(sim)
+    section_ = steering(sim, robust(sim, model, paths, args.starts, args.share), args.per_pair)
     sim.close()
     flags = (
-        f"--steer --max-combo {args.max_combo} --per-pair {args.per_pair} --hold {args.hold} "
+        f"--steer --max-combo {args.max_combo} --per-pair {args.per_pair} "
+        f"--starts {args.starts} --share {args.share} --hold {args.hold} "
         f"--settle {args.settle} --ramp {args.ramp} --seeds {sim.seed}"
     )
     text = yaml.safe_dump(
@@ -337,9 +391,7 @@ def steer_section(args: argparse.Namespace, sim: Rollouts) -> str:
     return f"# steer: found by scripts/find_gait.py {args.robot} {flags}.\n{text}"
 
 
-def turning_cycles(
-    model: dict[tuple[Face, int], tuple[Face, np.ndarray]], sign: float, count: int
-) -> list[Table]:
+def turning_cycles(model: Model, sign: float, count: int) -> list[Table]:
     """The ``count`` cycles of faces (each once, 2 to 4) that the model says turn most
     the way of ``sign`` (+1: left) while they move: the turn (rad) times the CoM's move
     (m, at least MIN_MOVE) a gait period, the greatest first, as tables."""
@@ -484,7 +536,7 @@ def find(args: argparse.Namespace, sims: list[Rollouts], forward: Any) -> tuple[
         return table, measure(args, sims, table)
     sign = 1.0 if args.turn == "left" else -1.0
     found = []
-    for cycle in turning_cycles(explore(sims[0]), sign, args.candidates):
+    for cycle in turning_cycles(explore(sims[0])[0], sign, args.candidates):
         table = search(sims, cycle, IntoTable(), periods, args.restarts)
         runs = measure(args, sims, table)
         worst = min(sign * r["turn"] * min(r["speed"], 1.0) for r in runs)
@@ -511,6 +563,12 @@ def main() -> None:
         "--steer", action="store_true", help="every face's distinct transitions, to steer by"
     )
     parser.add_argument("--per-pair", type=int, default=2, help="--steer: outcomes per face pair")
+    parser.add_argument(
+        "--starts", type=int, default=3, help="--steer: resting states per face a move runs from"
+    )
+    parser.add_argument(
+        "--share", type=float, default=0.6, help="--steer: share of --starts a move must hold in"
+    )
     parser.add_argument("--candidates", type=int, default=6, help="turning cycles run")
     parser.add_argument("--max-combo", type=int, default=3)
     parser.add_argument("--hold", type=int, default=25, help="control steps of a contraction")

@@ -2,6 +2,7 @@
 
     python scripts/gait_noise.py tensegrity_gym/SuperBallRoll-v0 [--gait steer]
         [--noise 0 0.03 0.135] [--episodes 8] [--seed 1000] [--estimator oracle]
+        [--robot PRESET_OR_YAML]
 
 The env is made with residual actions on the gait (``gym.make(id, residual_gait=0.5,
 base_gait=GAIT)``) and driven by Gaussian corrections of standard deviation NOISE (the
@@ -49,8 +50,12 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=8)
     parser.add_argument("--seed", type=int, default=1000)
     parser.add_argument("--estimator", default="oracle")
+    parser.add_argument("--robot", default=None, help="a preset or YAML file (the env's own)")
     args = parser.parse_args()
-    env = gym.make(args.env, estimator=args.estimator, residual_gait=0.5, base_gait=args.gait)
+    robot = {} if args.robot is None else {"robot": args.robot}
+    env = gym.make(
+        args.env, estimator=args.estimator, residual_gait=0.5, base_gait=args.gait, **robot
+    )
     for noise in args.noise:
         runs = [progress(env, noise, args.seed + k) for k in range(args.episodes)]
         print(f"noise {noise:g}: mean {np.mean(runs):.3f} m; episodes {np.round(runs, 2).tolist()}")

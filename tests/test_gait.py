@@ -287,15 +287,21 @@ def test_each_gait_travels_5_m(gait: str, steps: int) -> None:
     assert _run(gait, steps, seed=0)["rest_path_length"] > 5.0
 
 
+def _find_gait() -> Any:
+    """scripts/find_gait.py, imported as a module."""
+    spec = importlib.util.spec_from_file_location("find_gait", ROOT / "scripts" / "find_gait.py")
+    assert spec is not None and spec.loader is not None
+    find_gait = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(find_gait)
+    return find_gait
+
+
 def test_find_gaits_search_restores_the_ramp_with_the_world() -> None:
     """scripts/find_gait.py runs a path on from a saved state: with a ramp cut short by
     the rest, the command the ramp had reached is restored with the world, so a path run
     on from its prefix ends where the same path run from the reset does (to PyBullet's
     restore, 1e-5 m; the ramp restarted from the rest lengths ends 6 mm away)."""
-    spec = importlib.util.spec_from_file_location("find_gait", ROOT / "scripts" / "find_gait.py")
-    assert spec is not None and spec.loader is not None
-    find_gait = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(find_gait)
+    find_gait = _find_gait()
     args = argparse.Namespace(robot="three_bar", hold=25, settle=5, ramp=11, max_combo=1)
     resumed = find_gait.Rollouts(args, 0, {})
     resumed.outcome((0, 1))  # saves the state after (0,)
@@ -308,3 +314,65 @@ def test_find_gaits_search_restores_the_ramp_with_the_world() -> None:
     fresh.close()
     assert face == fresh_face
     assert np.linalg.norm(com - fresh_com) < 1e-3
+
+
+class _Outcomes:
+    """Stands in for find_gait's Rollouts: where each path leaves the robot, from a dict
+    (path -> (face, CoM x, y in m, yaw in rad)); a path it lacks moved nothing."""
+
+    def __init__(self, table: dict[tuple[int, ...], tuple[tuple[int, ...], float, float, float]]):
+        self.table = table
+
+    def outcome(self, path: tuple[int, ...]) -> tuple[tuple[int, ...], np.ndarray, float]:
+        while path not in self.table:
+            path = path[:-1]
+        face, x, y, yaw = self.table[path]
+        return face, np.array([x, y]), yaw
+
+
+def test_find_gaits_robust_model_keeps_the_moves_that_hold_from_every_start() -> None:
+    """``--steer`` runs the model's outcomes again from the face's other resting states
+    (reached from its other neighbours): a move that lands elsewhere from one of them is
+    dropped (``--share 1``), kept at a share it meets, and a kept move is the mean of
+    where it went, in each start's own frame."""
+    find_gait = _find_gait()
+    a, b, c = (0, 1, 2), (1, 2, 3), (2, 3, 4)
+    quarter = np.pi / 2
+    sim = _Outcomes(
+        {
+            (): (a, 0.0, 0.0, 0.0),
+            (0,): (b, 1.0, 0.0, 0.0),  # a -> b, the first way onto b
+            (1,): (c, 0.0, 1.0, 0.0),
+            (1, 5): (b, 0.0, 2.0, quarter),  # c -> b: b from its other side, turned
+            (0, 7): (c, 1.5, 0.0, 0.0),  # on b, move 7 reaches c from both starts
+            (1, 5, 7): (c, 0.0, 2.4, quarter),
+            (0, 8): (a, 1.0, 0.6, 0.0),  # move 8 reaches a from one start only
+            (1, 5, 8): (b, 0.0, 2.0, quarter),
+        }
+    )
+    model = {
+        (a, 0): (b, np.array([1.0, 0.0, 0.0])),
+        (a, 1): (c, np.array([0.0, 1.0, 0.0])),
+        (c, 5): (b, np.array([0.0, 1.0, quarter])),
+        (b, 7): (c, np.array([0.5, 0.0, 0.0])),
+        (b, 8): (a, np.array([0.0, 0.6, 0.0])),
+    }
+    paths = {a: (), b: (0,), c: (1,)}
+    assert find_gait.arrivals(model, paths, b, 3) == [(0,), (1, 5)]
+    kept = find_gait.robust(sim, model, paths, starts=3, share=1.0)
+    assert (b, 8) not in kept
+    to, move = kept[b, 7]
+    assert to == c
+    # From (1, 5) the robot faces +y: 0.4 m along +y is 0.4 m ahead in its frame.
+    np.testing.assert_allclose(move, [0.45, 0.0, 0.0], atol=1e-12)
+    assert (b, 8) in find_gait.robust(sim, model, paths, starts=3, share=0.5)
+    assert (b, 8) in find_gait.robust(sim, model, paths, starts=1, share=1.0)
+
+
+def test_find_gaits_mean_move_averages_turns_on_the_circle() -> None:
+    find_gait = _find_gait()
+    half = np.pi - 0.02
+    moves = np.array([[0.2, 0.0, half], [0.4, 0.2, -half]])
+    np.testing.assert_allclose(find_gait.mean_move(moves)[:2], [0.3, 0.1])
+    assert abs(abs(find_gait.mean_move(moves)[2]) - np.pi) < 1e-9
+    np.testing.assert_allclose(find_gait.mean_move(moves[:1]), moves[0], atol=1e-12)

@@ -75,10 +75,41 @@ def test_the_control_cost_is_the_corrections_not_the_gaits() -> None:
     np.testing.assert_allclose(difference, 0.05 * 0.25, rtol=1e-6)
 
 
-def test_the_residual_env_passes_gymnasiums_checks() -> None:
-    env = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5)
+@pytest.mark.parametrize("observe_base", [False, True])
+def test_the_residual_env_passes_gymnasiums_checks(observe_base: bool) -> None:
+    env = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, observe_base=observe_base)
     check_env(env.unwrapped, skip_render_check=True)
     env.close()
+
+
+def test_an_observed_base_is_the_gaits_command_for_the_step_to_come() -> None:
+    """``observe_base=True`` appends the gait's action for the next step to the
+    observation (the gait's phase and choice, which the robot's state does not hold);
+    the episode is the same as without it, bit for bit."""
+    seen = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, observe_base=True)
+    blind = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5)
+    m = seen.action_space.shape[0]
+    assert seen.observation_space.shape[0] == blind.observation_space.shape[0] + m
+    plain = gym.make(THREE_BAR, estimator="oracle")
+    inner = plain.unwrapped
+    gait = FaceGait(inner.backend.description, inner.task)  # type: ignore[attr-defined]
+    zeros = np.zeros(m, dtype=np.float32)
+    obs, _ = seen.reset(seed=4)
+    blind_obs, _ = blind.reset(seed=4)
+    plain_obs, _ = plain.reset(seed=4)
+    commands = []
+    for _ in range(40):
+        np.testing.assert_array_equal(obs[:-m], blind_obs)
+        command = gait(plain_obs)
+        np.testing.assert_array_equal(obs[-m:], command)  # what it will command
+        commands.append(command)
+        obs, *_ = seen.step(zeros)
+        blind_obs, *_ = blind.step(zeros)
+        plain_obs, *_ = plain.step(command)
+    # The gait contracted and released within those 40 steps: the part is not constant.
+    assert np.ptp(np.array(commands), axis=0).max() > 0.5
+    for env in (seen, blind, plain):
+        env.close()
 
 
 @pytest.mark.parametrize(
@@ -86,6 +117,8 @@ def test_the_residual_env_passes_gymnasiums_checks() -> None:
     [
         ({"base_gait": "steer"}, r"^make: base_gait='steer' names .*give residual_gait"),
         ({"residual_gait": 0.5, "base_gait": 3}, r"^make: base_gait must be a gait's name"),
+        ({"observe_base": True}, r"^make: observe_base=True shows .*give residual_gait"),
+        ({"residual_gait": 0.5, "observe_base": 1}, r"^make: observe_base must be True or"),
     ],
 )
 def test_a_base_gait_without_residual_actions_is_refused(
@@ -134,17 +167,20 @@ def test_a_policy_trained_on_residual_actions_is_evaluated_on_them(tmp_path: Pat
             "max_episode_steps": 16,
             "residual_gait": 0.25,
             "base_gait": "steer",
+            "observe_base": True,
             "ctrl_cost": 0.0,
         },
     )
     policy = load_policy(out)
-    # what its actions mean goes with it; its reward and episode length were its
-    # training's: every row of an evaluation runs on the env id's own task
-    assert policy.env_kwargs == {"residual_gait": 0.25, "base_gait": "steer"}
+    # what its actions and observations mean goes with it; its reward and episode
+    # length were its training's: every row of an evaluation runs on the env id's task
+    assert policy.env_kwargs == {"residual_gait": 0.25, "base_gait": "steer", "observe_base": True}
     try:
         env = _condition_env(policy.env_id, condition("oracle"), policy.env_kwargs).unwrapped
         assert isinstance(env.action_base, FaceGait) and env.residual_scale == 0.25  # type: ignore[attr-defined]
-        assert env.action_base.gait == "steer"  # type: ignore[attr-defined]
+        assert env.action_base.gait == "steer" and env.observe_base  # type: ignore[attr-defined]
+        obs, _ = env.reset(seed=0)
+        assert policy.act(obs).shape == env.action_space.shape
         assert isinstance(env.action_base, ActionBase)  # type: ignore[attr-defined]
         assert env.task.ctrl_cost == 0.05  # type: ignore[attr-defined]
         plain = _condition_env(policy.env_id, condition("oracle"), {}).unwrapped

@@ -211,6 +211,7 @@ def make_env(
     viewer_speed: float = 1.0,
     residual_gait: float | None = None,
     base_gait: str = DEFAULT_GAIT,
+    observe_base: bool = False,
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -266,6 +267,9 @@ def make_env(
             :attr:`~tensegrity_gym.model.description.RobotDescription.gaits`:
             ``"forward"`` (the default), or ``"steer"``, which rolls toward the task's
             goal; another than ``"forward"`` only with ``residual_gait``.
+        observe_base: with ``residual_gait``, the observation ends with the gait's
+            action for the step to come, (m,) in [-1, 1]: where in its period the gait
+            is and which contraction it chose, which the robot's state does not say.
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -284,7 +288,7 @@ def make_env(
         driver=driver,
     )
     check_calibration(calibration, world_seed)
-    _check_residual(description, residual_gait, base_gait)
+    _check_residual(description, residual_gait, base_gait, observe_base)
     ranges = resolve_randomization(randomization)
     # The task checks its own arguments before anything is started.
     spec.create(description, control_period, task_arguments)
@@ -308,8 +312,8 @@ def make_env(
         env = _assemble(backend, estimator, spec, description, task_arguments, record_dir,
                         render_mode, source, viewer)  # fmt: skip
         if residual_gait is not None:
-            env.action_base = FaceGait(description, env.task, gait=base_gait)
-            env.residual_scale = float(residual_gait)
+            gait = FaceGait(description, env.task, gait=base_gait)
+            env.correct(gait, float(residual_gait), observe=observe_base)
         return env
     except BaseException:
         backend.close()  # nothing half made stays open: a simulator, a link session
@@ -317,11 +321,18 @@ def make_env(
 
 
 def _check_residual(
-    description: RobotDescription, residual_gait: float | None, base_gait: str
+    description: RobotDescription, residual_gait: float | None, base_gait: str, observe: bool
 ) -> None:
     """Refuse residual actions' arguments that cannot be (see :func:`make_env`)."""
     if not isinstance(base_gait, str):
         raise ValueError(f"make: base_gait must be a gait's name, got {base_gait!r}")
+    if not isinstance(observe, bool):
+        raise ValueError(f"make: observe_base must be True or False, got {observe!r}")
+    if residual_gait is None and observe:
+        raise ValueError(
+            "make: observe_base=True shows the policy the gait residual actions correct; "
+            "give residual_gait (the correction's scale) too"
+        )
     if residual_gait is None and base_gait != DEFAULT_GAIT:
         raise ValueError(
             f"make: base_gait={base_gait!r} names the gait residual actions correct; "

@@ -63,6 +63,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         calibration: str = "estimated",
         action_base: ActionBase | None = None,
         residual_scale: float = 1.0,
+        observe_base: bool = False,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -75,13 +76,18 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self.render_size = render_size
         self.calibration = calibration
         """Where the estimators' UWB calibration comes from (``info["calibration"]``)."""
-        self.action_base = action_base
+        d = backend.description
+        self.action_space = spaces.Box(-1.0, 1.0, (d.n_actuated,), dtype=np.float32)
+        self.action_base: ActionBase | None = None
         """None: an action is the rest-length targets; else the targets are this
         controller's action plus ``residual_scale`` times the policy's (residual)."""
         self.residual_scale = residual_scale
-        d = backend.description
-        self.action_space = spaces.Box(-1.0, 1.0, (d.n_actuated,), dtype=np.float32)
+        self.observe_base = False
+        """Whether the observation ends with the base's action for the step (m,)."""
         self.observation_space = task.observation_space
+        self._base: NDArray[np.float64] | None = None  # the base's action for the next step
+        if action_base is not None:
+            self.correct(action_base, residual_scale, observe=observe_base)
         lo, hi, _ = d.motor_limits
         self._target_lo, self._target_span = lo, hi - lo
         self._backend_waits = backend_can_wait(backend)
@@ -138,6 +144,34 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             info["estimation_error"] = float(np.linalg.norm(truth.com - estimate.com))
         return info
 
+    def correct(self, base: ActionBase, scale: float, *, observe: bool = False) -> None:
+        """Make an action a correction of ``base``: the env commands ``base``'s action
+        for the observation plus ``scale`` times the policy's, clipped to [-1, 1]
+        (residual actions). ``observe``: the observation ends with ``base``'s action for
+        the step to come, (m,) in [-1, 1], so that a policy sees where in its period a
+        periodic controller is and what it chose (a gait's phase is its own state, not
+        the robot's); takes effect from the next reset."""
+        self.action_base, self.residual_scale, self.observe_base = base, scale, observe
+        space = self.task.observation_space
+        if observe:
+            m = self.backend.description.n_actuated
+            low = np.concatenate([space.low, -np.ones(m, dtype=np.float32)])
+            high = np.concatenate([space.high, np.ones(m, dtype=np.float32)])
+            space = spaces.Box(low, high, dtype=np.float32)
+        self.observation_space = space
+
+    def _observe(self, estimate: Estimate) -> NDArray[np.float32]:
+        """The task's observation of ``estimate``; with residual actions, the base's
+        action for the next step is taken from it now (and appended where observed)."""
+        observation = self.task.observation(estimate)
+        if self.action_base is None:
+            return observation
+        self._base = np.asarray(self.action_base(observation), dtype=np.float64)
+        if not self.observe_base:
+            return observation
+        extra = np.clip(self._base, -1.0, 1.0).astype(np.float32)
+        return np.concatenate([observation, extra])
+
     # ------------------------------------------------------------------ gym API
 
     def reset(
@@ -178,7 +212,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     ) -> tuple[NDArray[np.float32], dict[str, Any]]:
         # Until this reset succeeds there is no episode: a step must not command the robot
         # from the previous one's state.
-        self._estimate = self._observation = None
+        self._estimate = self._observation = self._base = None
         start = self._reset_backend(backend_options)
         d = self.backend.description
         command = d.rest_lengths[d.actuated].copy()  # the motors hold their initial lengths
@@ -194,7 +228,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.action_base is not None:
             self.action_base.reset()
         self._estimate = estimate
-        self._observation = self.task.observation(estimate)
+        self._observation = self._observe(estimate)
         if self.render_mode == "human":
             self.render()
         info = self._info(estimate)
@@ -242,8 +276,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             raise RuntimeError("call reset() before step() (and again after a reset that failed)")
         a = policy_action = self._check_action(action)
         base = None
-        if self.action_base is not None:  # the policy corrects the scripted controller
-            base = np.asarray(self.action_base(self._observation), dtype=np.float64)
+        if self._base is not None:  # the policy corrects the scripted controller
+            base = self._base
             a = np.clip(base + self.residual_scale * a, -1.0, 1.0)
         asked = self.action_to_targets(a)
         result = self.backend.step(asked)
@@ -267,7 +301,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
                 reward, rejected = 0.0, f"the reward was {reward}"
         self.task.advance(previous, estimate)  # e.g. a reached goal is replaced
         terminated = self.task.terminated(estimate)
-        self._observation = self.task.observation(estimate)
+        self._observation = self._observe(estimate)
         info = self._info(estimate)
         info["reward_rejected"] = rejected
         info.update(result.info)
