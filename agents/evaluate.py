@@ -25,7 +25,7 @@ from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Sequence
+    from collections.abc import Callable, Mapping, Sequence
     from pathlib import Path
 
     from numpy.typing import NDArray
@@ -44,6 +44,7 @@ __all__ = [
     "Condition",
     "EpisodeResult",
     "LoadedPolicy",
+    "action_kwargs",
     "condition",
     "condition_names",
     "count_rolls",
@@ -244,6 +245,13 @@ class LoadedPolicy:
         return _policy_from_files, (self.saved, self.name)
 
 
+def action_kwargs(config: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``gym.make`` arguments of a training run's ``config.yaml`` (loaded) that its
+    policy must run with (:data:`ACTION_KWARGS`)."""
+    env_kwargs = config.get("env_kwargs") or {}
+    return {k: env_kwargs[k] for k in ACTION_KWARGS if env_kwargs.get(k) is not None}
+
+
 def _policy_from_files(saved: dict[str, bytes], name: str) -> LoadedPolicy:
     """:func:`load_policy` of a run folder's files (a pickled :class:`LoadedPolicy`)."""
     import tempfile
@@ -279,7 +287,7 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
     except Exception as err:  # a corrupted zip fails in many ways inside SB3
         raise ValueError(f"{model_file}: cannot load a {algo} model: {err}") from None
     env_kwargs = config.get("env_kwargs") or {}
-    actions = {k: env_kwargs[k] for k in ACTION_KWARGS if env_kwargs.get(k) is not None}
+    actions = action_kwargs(config)
     env = gym.make(env_id, estimator="oracle", **actions)
     space = env.observation_space
     env.close()

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any, cast
 
 import gymnasium as gym
 import numpy as np
+import yaml
 from scipy.spatial.transform import Rotation
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
@@ -50,6 +51,7 @@ __all__ = [
     "BagsFailedError",
     "estimate_bag",
     "make_policy",
+    "policy_env_kwargs",
     "record",
     "write_tum",
 ]
@@ -106,6 +108,25 @@ def make_policy(name: str, env: gym.Env[Any, Any], seed: int) -> tuple[Policy, C
 
     # A run folder from `train`, or its model.zip: the model with its normalisation.
     return load_policy(path if path.is_dir() else path.parent).act, lambda: None
+
+
+def policy_env_kwargs(name: str) -> dict[str, Any]:
+    """The ``gym.make`` arguments a training run's policy runs with (what its actions and
+    observations mean: residual actions on a gait, the gait observed), read from its
+    ``config.yaml``; none for the built-in policies, or where ``name`` is no readable run
+    (:func:`make_policy` then says why)."""
+    path = Path(name)
+    if name in POLICIES or not path.exists():
+        return {}
+    from agents.evaluate import action_kwargs
+
+    try:
+        config = yaml.safe_load(
+            ((path if path.is_dir() else path.parent) / "config.yaml").read_text()
+        )
+    except (OSError, yaml.YAMLError):
+        return {}
+    return action_kwargs(config) if isinstance(config, dict) else {}
 
 
 def record(
@@ -177,7 +198,7 @@ def _record(
         kwargs["driver"] = driver
     if steps is not None:
         kwargs["max_episode_steps"] = steps
-    env = gym.make(env_id, **kwargs)
+    env = gym.make(env_id, **kwargs, **policy_env_kwargs(policy))
     inner = cast("TensegrityEnv", env.unwrapped)
     backend = inner.backend
     sink = backend.sink  # type: ignore[attr-defined]

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
-from agents.offline import make_policy
+from agents.offline import make_policy, policy_env_kwargs
 from hardware.viewer import DEFAULT_PORT
 
 if TYPE_CHECKING:
@@ -60,7 +60,7 @@ def view(
         kwargs["driver"] = f"bag:{bag}" if bag is not None else driver
     if steps is not None:
         kwargs["max_episode_steps"] = steps
-    env = gym.make(env_id, **kwargs)
+    env = gym.make(env_id, **kwargs, **policy_env_kwargs(policy))
     act, reset_policy = make_policy(policy, env, seed)
     done_episodes = 0
     try:

@@ -93,19 +93,19 @@ def test_an_observed_base_is_the_gaits_command_for_the_step_to_come() -> None:
     plain = gym.make(THREE_BAR, estimator="oracle")
     inner = plain.unwrapped
     gait = FaceGait(inner.backend.description, inner.task)  # type: ignore[attr-defined]
-    zeros = np.zeros(m, dtype=np.float32)
+    corrections = np.random.default_rng(0).normal(0.0, 0.3, (40, m)).astype(np.float32)
     obs, _ = seen.reset(seed=4)
     blind_obs, _ = blind.reset(seed=4)
     plain_obs, _ = plain.reset(seed=4)
     commands = []
-    for _ in range(40):
+    for correction in corrections:
         np.testing.assert_array_equal(obs[:-m], blind_obs)
         command = gait(plain_obs)
         np.testing.assert_array_equal(obs[-m:], command)  # what it will command
         commands.append(command)
-        obs, *_ = seen.step(zeros)
-        blind_obs, *_ = blind.step(zeros)
-        plain_obs, *_ = plain.step(command)
+        obs, *_ = seen.step(correction)
+        blind_obs, *_ = blind.step(correction)
+        plain_obs, *_ = plain.step(np.clip(command + 0.5 * correction, -1.0, 1.0))
     # The gait contracted and released within those 40 steps: the part is not constant.
     assert np.ptp(np.array(commands), axis=0).max() > 0.5
     for env in (seen, blind, plain):
@@ -225,3 +225,37 @@ def test_a_backend_that_reports_its_command_is_charged_what_drove_it() -> None:
     middle = env.action_to_targets(np.zeros(env.action_space.shape))  # type: ignore[attr-defined]
     env.close()
     np.testing.assert_array_equal(run(middle, 0.05), run(middle, 0.0))
+
+
+def test_a_base_set_mid_episode_asks_for_a_reset_and_decode_refuses_the_longer_observation() -> (
+    None
+):
+    env = gym.make(THREE_BAR, estimator="oracle")
+    inner = env.unwrapped
+    obs, _ = env.reset(seed=0)
+    env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    gait = FaceGait(inner.backend.description, inner.task)  # type: ignore[attr-defined]
+    inner.correct(gait, 0.5, observe=True)  # type: ignore[attr-defined]
+    with pytest.raises(RuntimeError, match="call reset"):
+        env.step(np.zeros(env.action_space.shape, dtype=np.float32))
+    longer, _ = env.reset(seed=0)
+    assert longer.shape == inner.observation_space.shape == (obs.size + gait.hold_action.size,)  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match=r"RollTask.decode: an observation of shape"):
+        inner.task.decode(longer)  # type: ignore[attr-defined]
+    env.close()
+
+
+def test_record_and_view_make_a_runs_env_with_what_its_actions_mean(tmp_path: Path) -> None:
+    from agents.offline import policy_env_kwargs
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(
+        "env_id: tensegrity_gym/ThreeBarRoll-v0\nenv_kwargs:\n  residual_gait: 0.5\n"
+        "  base_gait: steer\n  observe_base: true\n  ctrl_cost: 0.0\n"
+    )
+    (run / "model.zip").write_bytes(b"")
+    expected = {"residual_gait": 0.5, "base_gait": "steer", "observe_base": True}
+    assert policy_env_kwargs(str(run)) == expected
+    assert policy_env_kwargs(str(run / "model.zip")) == expected
+    assert policy_env_kwargs("scripted") == policy_env_kwargs(str(tmp_path / "none")) == {}

@@ -82,8 +82,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         """None: an action is the rest-length targets; else the targets are this
         controller's action plus ``residual_scale`` times the policy's (residual)."""
         self.residual_scale = residual_scale
-        self.observe_base = False
-        """Whether the observation ends with the base's action for the step (m,)."""
+        self._observe_base = False
         self.observation_space = task.observation_space
         self._base: NDArray[np.float64] | None = None  # the base's action for the next step
         if action_base is not None:
@@ -150,8 +149,9 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         (residual actions). ``observe``: the observation ends with ``base``'s action for
         the step to come, (m,) in [-1, 1], so that a policy sees where in its period a
         periodic controller is and what it chose (a gait's phase is its own state, not
-        the robot's); takes effect from the next reset."""
-        self.action_base, self.residual_scale, self.observe_base = base, scale, observe
+        the robot's). The next step needs a reset first."""
+        self.action_base, self.residual_scale, self._observe_base = base, scale, observe
+        self._estimate = self._observation = self._base = None
         space = self.task.observation_space
         if observe:
             m = self.backend.description.n_actuated
@@ -160,14 +160,24 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             space = spaces.Box(low, high, dtype=np.float32)
         self.observation_space = space
 
+    @property
+    def observe_base(self) -> bool:
+        """Whether the observation ends with the base's action for the step (m,)
+        (:meth:`correct`)."""
+        return self._observe_base
+
     def _observe(self, estimate: Estimate) -> NDArray[np.float32]:
         """The task's observation of ``estimate``; with residual actions, the base's
         action for the next step is taken from it now (and appended where observed)."""
         observation = self.task.observation(estimate)
         if self.action_base is None:
             return observation
-        self._base = np.asarray(self.action_base(observation), dtype=np.float64)
-        if not self.observe_base:
+        try:
+            self._base = np.asarray(self.action_base(observation), dtype=np.float64)
+        except BaseException:
+            self._observation = self._base = None  # no step on from half a state
+            raise
+        if not self._observe_base:
             return observation
         extra = np.clip(self._base, -1.0, 1.0).astype(np.float32)
         return np.concatenate([observation, extra])

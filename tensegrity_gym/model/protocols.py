@@ -177,8 +177,10 @@ class Estimator(Protocol):
 class ActionBase(Protocol):
     """A scripted controller whose actions a policy's correct (residual actions): the
     env commands ``base(observation) + scale * action``, clipped to [-1, 1]. Reset at
-    every episode's start; called with the observation the policy saw, returns an action
-    (m,) in [-1, 1]. :class:`~tensegrity_gym.tasks.gaits.FaceGait` is one."""
+    every episode's start; called once for each observation the task makes (the reset's
+    and every step's, the last included), with the task's observation (without the base
+    action an env that observes it appends), before the policy acts on it; returns an
+    action (m,) in [-1, 1]. :class:`~tensegrity_gym.tasks.gaits.FaceGait` is one."""
 
     def reset(self) -> None: ...
 

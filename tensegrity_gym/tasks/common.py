@@ -138,8 +138,15 @@ class GoalFrameTask:
         return np.asarray(bounded, dtype=np.float32)
 
     def decode(self, observation: NDArray[np.float32]) -> TaskObservation:
-        """An observation split back into its parts."""
-        parts = np.split(np.asarray(observation), np.cumsum(self._sizes)[:-1])
+        """An observation split back into its parts; ValueError for one of another size
+        (an env's, with what it appends)."""
+        observation = np.asarray(observation)
+        if observation.shape != (sum(self._sizes),):
+            raise ValueError(
+                f"{type(self).__name__}.decode: an observation of shape {observation.shape}, "
+                f"expected ({sum(self._sizes)},) (the task's own, without what an env appends)"
+            )
+        parts = np.split(observation, np.cumsum(self._sizes)[:-1])
         n = self.description.n_nodes
         return TaskObservation(
             positions=parts[0].reshape(n, 3),

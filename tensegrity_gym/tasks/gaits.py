@@ -206,7 +206,7 @@ class FaceGait:
             robot's gait's (0 without one).
         horizon: gait periods a steering gait looks ahead when it chooses (the paths
             are memoised by face and yaw, so a long horizon stays cheap: 1.3 s an
-            episode of 300 steps on SUPERball's 195 moves, at 6).
+            episode of 300 steps on the 195 moves of SUPERball's first model, at 6).
     """
 
     def __init__(
