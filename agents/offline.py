@@ -107,7 +107,12 @@ def make_policy(name: str, env: gym.Env[Any, Any], seed: int) -> tuple[Policy, C
     from agents.evaluate import load_policy
 
     # A run folder from `train`, or its model.zip: the model with its normalisation.
-    return load_policy(path if path.is_dir() else path.parent).act, lambda: None
+    return load_policy(_run_folder(path)).act, lambda: None
+
+
+def _run_folder(path: Path) -> Path:
+    """A training run's folder, from it or its ``model.zip``."""
+    return path if path.is_dir() else path.parent
 
 
 def policy_env_kwargs(name: str) -> dict[str, Any]:
@@ -121,9 +126,7 @@ def policy_env_kwargs(name: str) -> dict[str, Any]:
     from agents.evaluate import action_kwargs
 
     try:
-        config = yaml.safe_load(
-            ((path if path.is_dir() else path.parent) / "config.yaml").read_text()
-        )
+        config = yaml.safe_load((_run_folder(path) / "config.yaml").read_text())
     except (OSError, yaml.YAMLError):
         return {}
     return action_kwargs(config) if isinstance(config, dict) else {}

@@ -285,9 +285,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         if self._estimate is None or self._observation is None:
             raise RuntimeError("call reset() before step() (and again after a reset that failed)")
         a = policy_action = self._check_action(action)
-        base = None
-        if self._base is not None:  # the policy corrects the scripted controller
-            base = self._base
+        base = self._base
+        if base is not None:  # the policy corrects the scripted controller
             a = np.clip(base + self.residual_scale * a, -1.0, 1.0)
         asked = self.action_to_targets(a)
         result = self.backend.step(asked)
