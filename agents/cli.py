@@ -118,6 +118,8 @@ def _demo(args: argparse.Namespace) -> int:
         "progress_bar": not args.no_progress,
         "residual_gait": None if args.absolute_actions else RESIDUAL_GAIT,
     }
+    if args.base_gait is not None:  # else the demo's own
+        budget["base_gait"] = args.base_gait
     for key, given in (("ukf_timesteps", args.timesteps),
                        ("oracle_timesteps", args.oracle_timesteps)):  # fmt: skip
         if given is not None:  # else run_main_job's own: the demo's budget
@@ -467,6 +469,11 @@ def _add_demo(sub: Any) -> None:
         "--absolute-actions", action="store_true",
         help="the policies command rest-length targets themselves, not corrections of the "
         "scripted gait (gym.make's residual_gait)",
+    )  # fmt: skip
+    demo.add_argument(
+        "--base-gait", metavar="GAIT",
+        help="the robot's gait the policies correct (gym.make's base_gait; default 'steer', "
+        "the steering gait; 'forward': the gait that rolls its own way)",
     )  # fmt: skip
     demo.add_argument("--out", default="demo_out", help="folder for the runs and the report")
     demo.add_argument("--no-progress", action="store_true", help="no progress bars")

@@ -57,7 +57,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-ACTION_KWARGS = ("residual_gait", "base_gait", "observe_base")
+ACTION_KWARGS = ("residual_gait", "base_gait", "observe_base", "residual_deadband")
 """The ``gym.make`` arguments of a training run that say what its actions and
 observations mean: its policy is evaluated with them. Its others (``train
 --env-kwargs``: its task's reward, its terrain) shaped its training only: every policy

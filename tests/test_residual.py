@@ -75,6 +75,34 @@ def test_the_control_cost_is_the_corrections_not_the_gaits() -> None:
     np.testing.assert_allclose(difference, 0.05 * 0.25, rtol=1e-6)
 
 
+def test_a_deadband_leaves_small_corrections_out_and_shrinks_the_others() -> None:
+    """``residual_deadband=d``: actions within d of 0 are the gait bit for bit; a larger
+    one corrects it by its excess over d (soft thresholding)."""
+
+    def banded() -> gym.Env:  # type: ignore[type-arg]
+        return gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, residual_deadband=0.2)
+
+    def plain() -> gym.Env:  # type: ignore[type-arg]
+        return gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5)
+
+    m = plain().action_space.shape[0]
+    rng = np.random.default_rng(1)
+    small = iter(rng.uniform(-0.19, 0.19, (40, m)).astype(np.float32))
+    zeros = np.zeros(m, dtype=np.float32)
+    assert np.array_equal(
+        _com_after(banded(), lambda obs: next(small)), _com_after(plain(), lambda obs: zeros)
+    )
+    large = rng.uniform(-1.0, 1.0, m).astype(np.float32)
+    wide = large.astype(np.float64)
+    excess = np.sign(wide) * np.maximum(np.abs(wide) - 0.2, 0.0)
+    assert np.count_nonzero(excess) > 0
+    env = banded()
+    np.testing.assert_array_equal(env.unwrapped.correction(wide), excess)  # type: ignore[attr-defined]
+    shrunk = _com_after(env, lambda obs: large)
+    assert np.array_equal(shrunk, _com_after(plain(), lambda obs: excess))
+    assert not np.allclose(shrunk, _com_after(plain(), lambda obs: large))
+
+
 @pytest.mark.parametrize("observe_base", [False, True])
 def test_the_residual_env_passes_gymnasiums_checks(observe_base: bool) -> None:
     env = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, observe_base=observe_base)
@@ -119,6 +147,7 @@ def test_an_observed_base_is_the_gaits_command_for_the_step_to_come() -> None:
         ({"residual_gait": 0.5, "base_gait": 3}, r"^make: base_gait must be a gait's name"),
         ({"observe_base": True}, r"^make: observe_base=True shows .*give residual_gait"),
         ({"residual_gait": 0.5, "observe_base": 1}, r"^make: observe_base must be True or"),
+        ({"residual_deadband": 0.1}, r"^make: residual_deadband leaves .*give residual_gait"),
     ],
 )
 def test_a_base_gait_without_residual_actions_is_refused(
@@ -133,6 +162,9 @@ def test_a_base_gait_without_residual_actions_is_refused(
     [
         ({"residual_gait": 0.0}, "residual_gait=0.0 must be a finite number and > 0"),
         ({"residual_gait": "big"}, "residual_gait='big' must be a finite number"),
+        ({"residual_gait": 0.5, "residual_deadband": -0.1}, "residual_deadband=-0.1 must be"),
+        ({"residual_gait": 0.5, "residual_deadband": 1.0}, "residual_deadband=1.0 must be below 1"),
+        ({"residual_gait": 0.5, "residual_deadband": "x"}, "residual_deadband='x' must be a"),
         (
             {
                 "residual_gait": 0.5,

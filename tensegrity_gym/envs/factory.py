@@ -212,6 +212,7 @@ def make_env(
     residual_gait: float | None = None,
     base_gait: str = DEFAULT_GAIT,
     observe_base: bool = False,
+    residual_deadband: float = 0.0,
     **task_arguments: Any,
 ) -> TensegrityEnv:
     """Build an env: a robot, its backend, an estimator and a task, each by name.
@@ -270,6 +271,10 @@ def make_env(
         observe_base: with ``residual_gait``, the observation ends with the gait's
             action for the step to come, (m,) in [-1, 1]: where in its period the gait
             is and which contraction it chose, which the robot's state does not say.
+        residual_deadband: with ``residual_gait``, each entry of the policy's action is
+            moved toward 0 by this much (in [0, 1)) before it corrects the gait, those
+            within it correcting nothing (soft thresholding): the policy's small, noisy
+            means leave the gait as it is (:meth:`TensegrityEnv.correct`).
         task_arguments: the task's own (``goal_heading``, ``goal_distance``,
             ``ctrl_cost`` for ``"roll"``; ``goal_range``, ``success_radius``,
             ``success_bonus``, ``ctrl_cost`` for ``"goto"``); another is refused by name.
@@ -288,7 +293,7 @@ def make_env(
         driver=driver,
     )
     check_calibration(calibration, world_seed)
-    _check_residual(description, residual_gait, base_gait, observe_base)
+    _check_residual(description, residual_gait, base_gait, observe_base, residual_deadband)
     ranges = resolve_randomization(randomization)
     # The task checks its own arguments before anything is started.
     spec.create(description, control_period, task_arguments)
@@ -313,7 +318,9 @@ def make_env(
                         render_mode, source, viewer)  # fmt: skip
         if residual_gait is not None:
             gait = FaceGait(description, env.task, gait=base_gait)
-            env.correct(gait, float(residual_gait), observe=observe_base)
+            env.correct(
+                gait, float(residual_gait), observe=observe_base, deadband=residual_deadband
+            )
         return env
     except BaseException:
         backend.close()  # nothing half made stays open: a simulator, a link session
@@ -321,9 +328,22 @@ def make_env(
 
 
 def _check_residual(
-    description: RobotDescription, residual_gait: float | None, base_gait: str, observe: bool
+    description: RobotDescription,
+    residual_gait: float | None,
+    base_gait: str,
+    observe: bool,
+    deadband: float,
 ) -> None:
     """Refuse residual actions' arguments that cannot be (see :func:`make_env`)."""
+    if check_number("residual_deadband", deadband, non_negative=True) >= 1.0:
+        raise ValueError(
+            f"make: residual_deadband={deadband!r} must be below 1 (the action's bound)"
+        )
+    if residual_gait is None and deadband != 0.0:
+        raise ValueError(
+            "make: residual_deadband leaves small corrections of the gait out; "
+            "give residual_gait (the correction's scale) too"
+        )
     if not isinstance(base_gait, str):
         raise ValueError(f"make: base_gait must be a gait's name, got {base_gait!r}")
     if not isinstance(observe, bool):

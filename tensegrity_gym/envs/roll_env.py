@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from tensegrity_gym.model.checks import check_open
+from tensegrity_gym.model.checks import check_number, check_open
 from tensegrity_gym.model.protocols import backend_can_wait
 
 if TYPE_CHECKING:
@@ -64,6 +64,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         action_base: ActionBase | None = None,
         residual_scale: float = 1.0,
         observe_base: bool = False,
+        residual_deadband: float = 0.0,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -82,11 +83,15 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         """None: an action is the rest-length targets; else the targets are this
         controller's action plus ``residual_scale`` times the policy's (residual)."""
         self.residual_scale = residual_scale
+        self.residual_deadband = 0.0
+        """The policy's actions within this of 0 are no correction (:meth:`correct`)."""
         self._observe_base = False
         self.observation_space = task.observation_space
         self._base: NDArray[np.float64] | None = None  # the base's action for the next step
         if action_base is not None:
-            self.correct(action_base, residual_scale, observe=observe_base)
+            self.correct(
+                action_base, residual_scale, observe=observe_base, deadband=residual_deadband
+            )
         lo, hi, _ = d.motor_limits
         self._target_lo, self._target_span = lo, hi - lo
         self._backend_waits = backend_can_wait(backend)
@@ -143,14 +148,24 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             info["estimation_error"] = float(np.linalg.norm(truth.com - estimate.com))
         return info
 
-    def correct(self, base: ActionBase, scale: float, *, observe: bool = False) -> None:
+    def correct(
+        self, base: ActionBase, scale: float, *, observe: bool = False, deadband: float = 0.0
+    ) -> None:
         """Make an action a correction of ``base``: the env commands ``base``'s action
         for the observation plus ``scale`` times the policy's, clipped to [-1, 1]
         (residual actions). ``observe``: the observation ends with ``base``'s action for
         the step to come, (m,) in [-1, 1], so that a policy sees where in its period a
         periodic controller is and what it chose (a gait's phase is its own state, not
-        the robot's). The next step needs a reset first."""
+        the robot's). ``deadband`` (in [0, 1)): each entry of the policy's action is
+        moved toward 0 by this much first, those within it becoming 0 (soft
+        thresholding), so that a policy corrects the base only where its action is
+        confidently away from 0: a marginal gait is not perturbed by a policy's small,
+        noisy means. The next step needs a reset first."""
+        deadband = check_number("deadband", deadband, non_negative=True, where="correct")
+        if deadband >= 1.0:
+            raise ValueError(f"correct: deadband={deadband!r} must be below 1 (the action's bound)")
         self.action_base, self.residual_scale, self._observe_base = base, scale, observe
+        self.residual_deadband = float(deadband)
         self._estimate = self._observation = self._base = None
         space = self.task.observation_space
         if observe:
@@ -287,7 +302,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         a = policy_action = self._check_action(action)
         base = self._base
         if base is not None:  # the policy corrects the scripted controller
-            a = np.clip(base + self.residual_scale * a, -1.0, 1.0)
+            a = np.clip(base + self.residual_scale * self.correction(a), -1.0, 1.0)
         asked = self.action_to_targets(a)
         result = self.backend.step(asked)
         if result.diverged:
@@ -317,6 +332,14 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode == "human":
             self.render()
         return self._observation, float(reward), terminated, result.ended and not terminated, info
+
+    def correction(self, action: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The correction a policy's ``action`` (m,) makes before the scale: the action
+        soft-thresholded by :attr:`residual_deadband` (the action itself at 0)."""
+        d = self.residual_deadband
+        if d == 0.0:
+            return action
+        return np.sign(action) * np.maximum(np.abs(action) - d, 0.0)
 
     def _charged(
         self,
