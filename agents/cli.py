@@ -119,6 +119,9 @@ def _demo(args: argparse.Namespace) -> int:
         "residual_gait": None if args.absolute_actions else RESIDUAL_GAIT,
     }
     if args.base_gait is not None:  # else the demo's own
+        if args.absolute_actions:
+            raise ValueError("demo: --base-gait names the gait the policies correct; "
+                             "--absolute-actions policies correct none")  # fmt: skip
         budget["base_gait"] = args.base_gait
     for key, given in (("ukf_timesteps", args.timesteps),
                        ("oracle_timesteps", args.oracle_timesteps)):  # fmt: skip

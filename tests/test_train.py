@@ -384,6 +384,21 @@ def test_one_seed_states_its_result_against_the_multi_seed_run() -> None:
     assert "No multi-seed run" in against_reference(report, settings, None)[0]
 
 
+def test_the_stored_multi_seed_run_ran_with_the_demos_own_settings() -> None:
+    """A one-seed demo with its defaults is set against ``demo_seeds.json``: that run's
+    settings must be the defaults, or the comparison is never made."""
+    import inspect
+
+    from agents.main_job import load_reference, run_main_job
+
+    reference = load_reference()
+    assert reference is not None
+    parameters = inspect.signature(run_main_job).parameters
+    defaults = {k: parameters[k].default for k in reference["settings"]}
+    assert reference["settings"] == defaults
+    assert set(reference["seeds"]) >= {0, 1, 2}
+
+
 @pytest.mark.slow
 def test_the_demo_over_two_seeds_writes_each_report_and_the_summary(tmp_path: Path) -> None:
     summary = run_main_job_seeds(
@@ -419,7 +434,10 @@ def test_a_policy_trained_in_randomised_worlds_is_named_so(tmp_path: Path) -> No
 
 
 def test_the_demo_runs_on_its_own_budget_unless_told(
-    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    caplog: pytest.LogCaptureFixture,
 ) -> None:
     import agents.main_job
     from agents.cli import main
@@ -438,6 +456,13 @@ def test_the_demo_runs_on_its_own_budget_unless_told(
     assert main(["demo", "--out", str(tmp_path), *budget]) == 0
     assert given[1]["ukf_timesteps"] == 7 and given[1]["oracle_timesteps"] == 0
     assert "wall time per stage" in capsys.readouterr().out
+    assert "base_gait" not in given[0]  # the demo's own: the steering gait
+    assert main(["demo", "--out", str(tmp_path), "--base-gait", "forward"]) == 0
+    assert given[2]["base_gait"] == "forward"
+    assert (
+        main(["demo", "--out", str(tmp_path), "--base-gait", "forward", "--absolute-actions"]) == 2
+    )
+    assert "--absolute-actions policies correct none" in capsys.readouterr().err + caplog.text
 
 
 def test_runs_of_the_same_name_are_told_apart_by_their_folders(tmp_path: Path) -> None:
