@@ -40,19 +40,46 @@ def _env_kwargs(args: argparse.Namespace, *names: str) -> dict[str, Any]:
     return {n: getattr(args, n) for n in names if getattr(args, n) is not None}
 
 
+def _key_value(text: str) -> tuple[str, str]:
+    """``KEY:VALUE`` split at its first colon; ArgumentTypeError for another form."""
+    key, sep, value = text.partition(":")
+    if not sep or not key.isidentifier():
+        raise argparse.ArgumentTypeError(f"expected KEY:VALUE, got {text!r}")
+    return key, value
+
+
 def _env_kwarg(text: str) -> tuple[str, Any]:
     """An argparse type: ``KEY:VALUE``, a ``gym.make`` argument as rl-zoo3's
     ``--env-kwargs`` writes it (the value a Python literal: ``ctrl_cost:0.0``,
     ``goal_heading:None``, ``terrain:"'valley'"``)."""
-    key, sep, value = text.partition(":")
-    if not sep or not key.isidentifier():
-        raise argparse.ArgumentTypeError(f"expected KEY:VALUE, got {text!r}")
+    key, value = _key_value(text)
     try:
         return key, ast.literal_eval(value)
     except (ValueError, SyntaxError):
         raise argparse.ArgumentTypeError(
             f"{key}: {value!r} is not a Python literal (quote a string: {key}:\"'{value}'\")"
         ) from None
+
+
+def _hyperparam(text: str) -> tuple[str, Any]:
+    """An argparse type: ``KEY:VALUE``, a hyperparameter as rl-zoo3's ``--hyperparams``
+    writes it (``learning_rate:1e-4``, ``policy_kwargs:"dict(log_std_init=-2.0)"``): a
+    Python literal, or the text as it stands (a ``dict(...)`` the config reader parses)."""
+    key, value = _key_value(text)
+    try:
+        return key, ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+        return key, value
+
+
+def _pairs(pairs: list[tuple[str, Any]] | None, option: str) -> dict[str, Any]:
+    """``KEY:VALUE`` options as a dict; ValueError for a key given twice."""
+    out: dict[str, Any] = {}
+    for key, value in pairs or ():
+        if key in out:
+            raise ValueError(f"{option} {key} is given twice")
+        out[key] = value
+    return out
 
 
 def _positive_float(text: str) -> float:
@@ -155,13 +182,10 @@ the robot and the task)."""
 def _training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     """``--env-kwargs`` and the options that are ``gym.make`` arguments, as one dict;
     raises ValueError for a key given twice or one that has its own option."""
-    given: dict[str, Any] = {}
-    for key, value in args.env_kwargs or ():
+    given = _pairs(args.env_kwargs, "--env-kwargs")
+    for key in given:
         if key in _OWN_OPTIONS:
             raise ValueError(f"--env-kwargs {key}: use {_OWN_OPTIONS[key]} instead")
-        if key in given:
-            raise ValueError(f"--env-kwargs {key} is given twice")
-        given[key] = value
     return {**given, **_env_kwargs(args, "randomization", "residual_gait")}
 
 
@@ -178,6 +202,7 @@ def _train(args: argparse.Namespace) -> int:
             seed=args.seed,
             n_envs=args.n_envs,
             config_file=Path(args.config) if args.config else None,
+            hyperparams=_pairs(args.hyperparams, "--hyperparams"),
             progress_bar=not args.no_progress,
             env_kwargs=_training_env_kwargs(args),
             ray_address=args.ray,
@@ -513,6 +538,13 @@ def _add_train(sub: Any, env_help: str) -> None:
         metavar="KEY:VALUE",
         help="more gym.make arguments for training, as rl-zoo3 takes them (e.g. the "
         "task's ctrl_cost:0.0); the run's config keeps them",
+    )  # fmt: skip
+    tr.add_argument(
+        "--hyperparams", type=_hyperparam, nargs="+", action="extend", default=None,
+        metavar="KEY:VALUE",
+        help="hyperparameters put over the config's, as rl-zoo3 takes them (e.g. "
+        "learning_rate:1e-4 policy_kwargs:\"dict(log_std_init=-2.0)\"); the run's config "
+        "keeps them",
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -23,7 +23,7 @@ import yaml
 from tensegrity_gym.model.registry import estimator_spec
 
 if TYPE_CHECKING:
-    from collections.abc import Collection, Sequence
+    from collections.abc import Collection, Mapping, Sequence
 
     from stable_baselines3.common.base_class import BaseAlgorithm
     from stable_baselines3.common.callbacks import BaseCallback
@@ -117,9 +117,15 @@ def config_entry(entries: Collection[str], env_id: str) -> str | None:
     return None
 
 
-def load_hyperparams(algo: str, env_id: str, config_file: Path | None = None) -> dict[str, Any]:
-    """The checked hyperparameters of ``env_id`` for ``algo`` (see :func:`config_entry`);
-    unknown keys fail at once with the list of valid ones."""
+def load_hyperparams(
+    algo: str,
+    env_id: str,
+    config_file: Path | None = None,
+    overrides: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The checked hyperparameters of ``env_id`` for ``algo`` (see :func:`config_entry`),
+    with ``overrides`` (rl-zoo3's ``--hyperparams``) put over the config's; unknown keys
+    fail at once with the list of valid ones."""
     cls = _algorithm_class(algo)
     path = config_file or CONFIG_DIR / f"{algo}.yml"
     try:
@@ -132,17 +138,18 @@ def load_hyperparams(algo: str, env_id: str, config_file: Path | None = None) ->
         raise ValueError(
             f"{path}: no entry for {env_id!r} (nor its robot's Roll id); entries: {ids}"
         )
-    params = dict(doc[entry])
     valid = _RUN_KEYS | (set(inspect.signature(cls.__init__).parameters) - _OWN_ARGS)
-    unknown = sorted(set(params) - valid)
-    if unknown:
-        raise ValueError(
-            f"{path}: {env_id}: unknown keys {unknown} for {algo}; valid keys: {sorted(valid)}"
-        )
-    for key in ("normalize", "policy_kwargs"):
-        if isinstance(params.get(key), str):
-            params[key] = parse_config_value(params[key], f"{path}: {env_id}.{key}")
-    return params
+    given = {f"{path}: {env_id}": dict(doc[entry]), "--hyperparams": dict(overrides or {})}
+    for where, entries in given.items():
+        unknown = sorted(set(entries) - valid)
+        if unknown:
+            raise ValueError(
+                f"{where}: unknown keys {unknown} for {algo}; valid keys: {sorted(valid)}"
+            )
+        for key in ("normalize", "policy_kwargs"):
+            if isinstance(entries.get(key), str):
+                entries[key] = parse_config_value(entries[key], f"{where}.{key}")
+    return {**given[f"{path}: {env_id}"], **given["--hyperparams"]}
 
 
 @dataclass(frozen=True)
@@ -233,6 +240,7 @@ def train(
     seed: int = 0,
     n_envs: int | None = None,
     config_file: Path | None = None,
+    hyperparams: Mapping[str, Any] | None = None,
     checkpoint_every: int = 50_000,
     progress_bar: bool = True,
     env_kwargs: dict[str, Any] | None = None,
@@ -244,7 +252,8 @@ def train(
 
     ``out`` receives ``model.zip`` and ``vecnormalize.pkl`` (when the config normalises),
     ``config.yaml``, ``checkpoints/``, ``monitor/`` and ``tb/`` (TensorBoard);
-    ``callbacks`` run beside the checkpointing. Ctrl-C
+    ``callbacks`` run beside the checkpointing; ``hyperparams`` are put over the config's
+    (``config.yaml`` keeps the result). Ctrl-C
     saves the model reached so far as ``out/model.zip`` (``config.yaml`` then says
     ``interrupted: true``) and re-raises.
 
@@ -261,7 +270,7 @@ def train(
         ids = sorted(k for k in gym.registry if k.startswith("tensegrity_gym/"))
         raise ValueError(f"unknown env id {env_id!r}; valid choices: {ids}")
     check_env_kwargs(env_id, env_kwargs or {})
-    params = load_hyperparams(algo, env_id, config_file)
+    params = load_hyperparams(algo, env_id, config_file, hyperparams)
     total = int(timesteps if timesteps is not None else params.pop("n_timesteps", 100_000))
     params.pop("n_timesteps", None)
     envs = int(n_envs if n_envs is not None else params.pop("n_envs", 1))

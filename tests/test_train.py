@@ -56,6 +56,7 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
         progress_bar=False,
         checkpoint_every=64,
         env_kwargs={"max_episode_steps": 50},  # episodes end, so the Monitor has a curve
+        hyperparams={"gamma": 0.97},
     )
     return out
 
@@ -83,6 +84,22 @@ def test_config_values_are_read_without_eval() -> None:
             parse_config_value(bad, "policy_kwargs")
     with pytest.raises(ValueError, match="not an expression"):
         parse_config_value("dict(", "policy_kwargs")
+
+
+def test_hyperparams_are_put_over_the_configs() -> None:
+    """``--hyperparams`` (rl-zoo3's): each given key replaces the config's, a
+    ``dict(...)`` text is parsed as the config's is, and the others stay."""
+    base = load_hyperparams("ppo", THREE_BAR)
+    given = {"learning_rate": 1e-4, "policy_kwargs": "dict(log_std_init=-2.0)"}
+    params = load_hyperparams("ppo", THREE_BAR, overrides=given)
+    assert params["learning_rate"] == 1e-4 and params["policy_kwargs"] == {"log_std_init": -2.0}
+    assert {k: v for k, v in params.items() if k not in given} == {
+        k: v for k, v in base.items() if k not in given
+    }
+    with pytest.raises(ValueError, match=r"^--hyperparams: unknown keys \['lr'\] for ppo"):
+        load_hyperparams("ppo", THREE_BAR, overrides={"lr": 1e-4})
+    with pytest.raises(ValueError, match=r"^--hyperparams.policy_kwargs: 'open\(1\)' is not"):
+        load_hyperparams("ppo", THREE_BAR, overrides={"policy_kwargs": "dict(a=open(1))"})
 
 
 def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
@@ -120,6 +137,8 @@ def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
             "ctrl_cost is given twice",
         ),
         (["--env-kwargs", "robot:'three_bar_large'"], "--env-kwargs robot: use --env"),
+        (["--hyperparams", "gamma:0.9", "gamma:0.8"], "--hyperparams gamma is given twice"),
+        (["--hyperparams", "gama:0.9"], "--hyperparams: unknown keys ['gama'] for ppo"),
     ],
 )
 def test_bad_env_kwargs_are_one_line_and_exit_2(
@@ -147,6 +166,7 @@ def test_training_writes_model_statistics_config_logs_and_checkpoints(tiny_run: 
     assert config["env_id"] == THREE_BAR and config["estimator"] == "oracle"
     assert config["seed"] == 3 and config["completed_timesteps"] == 128
     assert config["hyperparams"]["n_steps"] == 64 and not config["interrupted"]
+    assert config["hyperparams"]["gamma"] == 0.97  # --hyperparams, over the config's
     assert sorted(p.name for p in (tiny_run / "checkpoints").glob("*.zip")) == [
         "model_128_steps.zip",
         "model_64_steps.zip",
