@@ -61,15 +61,24 @@ def _env_kwarg(text: str) -> tuple[str, Any]:
         ) from None
 
 
+_TEXT_HYPERPARAMS = ("policy", "normalize", "policy_kwargs")
+"""The hyperparameters whose value may be text as it stands (rl-zoo3 writes them so)."""
+
+
 def _hyperparam(text: str) -> tuple[str, Any]:
     """An argparse type: ``KEY:VALUE``, a hyperparameter as rl-zoo3's ``--hyperparams``
     writes it (``learning_rate:1e-4``, ``policy_kwargs:"dict(log_std_init=-2.0)"``): a
-    Python literal, or the text as it stands (a ``dict(...)`` the config reader parses)."""
+    Python literal, or for :data:`_TEXT_HYPERPARAMS` the text as it stands (a
+    ``dict(...)`` the config reader parses)."""
     key, value = _key_value(text)
     try:
         return key, ast.literal_eval(value)
     except (ValueError, SyntaxError):
-        return key, value
+        if key in _TEXT_HYPERPARAMS:
+            return key, value
+        raise argparse.ArgumentTypeError(
+            f"--hyperparams {key}: {value!r} is not a Python literal"
+        ) from None
 
 
 def _pairs(pairs: list[tuple[str, Any]] | None, option: str) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from tensegrity_gym.model.description import STEER_GAIT
 if TYPE_CHECKING:
     from collections.abc import Sequence
 
-__all__ = ["across_seeds", "run_main_job", "run_main_job_seeds"]
+__all__ = ["across_seeds", "demo_settings", "run_main_job", "run_main_job_seeds"]
 
 log = logging.getLogger(__name__)
 
@@ -86,13 +86,7 @@ def run_main_job(
     report = write_report(runs, out / "report", episodes=episodes, conditions=DEMO_CONDITIONS)
     timing["evaluate_and_report"] = round(time.perf_counter() - start, 1)
     report["timing_s"] = timing
-    settings = {
-        "ukf_timesteps": ukf_timesteps,
-        "oracle_timesteps": oracle_timesteps,
-        "episodes": episodes,
-        "residual_gait": residual_gait,
-        "base_gait": base_gait if env_kwargs else None,
-    }
+    settings = demo_settings(ukf_timesteps, oracle_timesteps, episodes, residual_gait, base_gait)
     lines = against_reference(report, settings, load_reference())
     report["settings"] = settings
     report["against_seeds"] = lines
@@ -100,6 +94,24 @@ def run_main_job(
         md.write("\n## Against the multi-seed run\n\n" + "\n".join(lines) + "\n")
     (out / "report" / "report.json").write_text(json.dumps(report, indent=2) + "\n")
     return report
+
+
+def demo_settings(
+    ukf_timesteps: int,
+    oracle_timesteps: int,
+    episodes: int,
+    residual_gait: float | None,
+    base_gait: str,
+) -> dict[str, Any]:
+    """What a demo ran with (:func:`run_main_job`'s arguments that change its figures),
+    as its report and the stored multi-seed run keep it."""
+    return {
+        "ukf_timesteps": ukf_timesteps,
+        "oracle_timesteps": oracle_timesteps,
+        "episodes": episodes,
+        "residual_gait": residual_gait,
+        "base_gait": base_gait if residual_gait is not None else None,
+    }
 
 
 REFERENCE = Path(__file__).parent / "configs" / "demo_seeds.json"

@@ -162,9 +162,13 @@ def test_a_base_gait_without_residual_actions_is_refused(
     [
         ({"residual_gait": 0.0}, "residual_gait=0.0 must be a finite number and > 0"),
         ({"residual_gait": "big"}, "residual_gait='big' must be a finite number"),
-        ({"residual_gait": 0.5, "residual_deadband": -0.1}, "residual_deadband=-0.1 must be"),
-        ({"residual_gait": 0.5, "residual_deadband": 1.0}, "residual_deadband=1.0 must be below 1"),
+        ({"residual_gait": 0.5, "residual_deadband": -0.1}, "residual_deadband=-0.1 must be a"),
+        (
+            {"residual_gait": 0.5, "residual_deadband": 1.0},
+            "residual_deadband=1.0 must be a finite number in",
+        ),
         ({"residual_gait": 0.5, "residual_deadband": "x"}, "residual_deadband='x' must be a"),
+        ({"residual_gait": 0.5, "residual_deadband": float("nan")}, "residual_deadband=nan must"),
         (
             {
                 "residual_gait": 0.5,
@@ -257,6 +261,27 @@ def test_a_backend_that_reports_its_command_is_charged_what_drove_it() -> None:
     middle = env.action_to_targets(np.zeros(env.action_space.shape))  # type: ignore[attr-defined]
     env.close()
     np.testing.assert_array_equal(run(middle, 0.05), run(middle, 0.0))
+
+
+def test_with_a_deadband_the_cost_charges_the_action_or_the_least_one_that_drove() -> None:
+    """With ``residual_deadband``, a step charges the policy's action itself (the band
+    included); where the backend drove other targets, the least action that implies
+    them: the correction they make, moved out by the band."""
+    env = gym.make(THREE_BAR, estimator="oracle", residual_gait=0.5, residual_deadband=0.2)
+    inner = env.unwrapped
+    m = env.action_space.shape[0]
+    base = np.zeros(m)
+    action = np.linspace(-0.9, 0.9, m)
+    asked = inner.action_to_targets(base + 0.5 * inner.correction(action))  # type: ignore[attr-defined]
+    charged = inner._charged(action, base, asked, asked)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(charged, action, atol=1e-7)
+    correction = np.zeros(m)
+    correction[0], correction[-1] = 0.3, -0.1  # the others: none
+    driven = inner.action_to_targets(base + 0.5 * correction)  # type: ignore[attr-defined]
+    expected = np.sign(correction) * (np.abs(correction) + 0.2 * (correction != 0))
+    charged = inner._charged(action, base, asked, driven)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(charged, expected, atol=1e-6)
+    env.close()
 
 
 def test_a_base_set_mid_episode_asks_for_a_reset_and_decode_refuses_the_longer_observation() -> (

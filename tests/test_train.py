@@ -139,6 +139,7 @@ def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
         (["--env-kwargs", "robot:'three_bar_large'"], "--env-kwargs robot: use --env"),
         (["--hyperparams", "gamma:0.9", "gamma:0.8"], "--hyperparams gamma is given twice"),
         (["--hyperparams", "gama:0.9"], "--hyperparams: unknown keys ['gama'] for ppo"),
+        (["--hyperparams", "gamma:0.9.9"], "--hyperparams gamma: '0.9.9' is not a Python literal"),
     ],
 )
 def test_bad_env_kwargs_are_one_line_and_exit_2(
@@ -409,13 +410,13 @@ def test_the_stored_multi_seed_run_ran_with_the_demos_own_settings() -> None:
     settings must be the defaults, or the comparison is never made."""
     import inspect
 
-    from agents.main_job import load_reference, run_main_job
+    from agents.main_job import demo_settings, load_reference, run_main_job
 
     reference = load_reference()
     assert reference is not None
     parameters = inspect.signature(run_main_job).parameters
-    defaults = {k: parameters[k].default for k in reference["settings"]}
-    assert reference["settings"] == defaults
+    own = inspect.signature(demo_settings).parameters
+    assert reference["settings"] == demo_settings(**{k: parameters[k].default for k in own})
     assert set(reference["seeds"]) >= {0, 1, 2}
 
 

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from tensegrity_gym.envs.calibration import apply_calibration, check_calibration
 from tensegrity_gym.envs.roll_env import TensegrityEnv
-from tensegrity_gym.model.checks import check_number
+from tensegrity_gym.model.checks import check_fraction, check_number
 from tensegrity_gym.model.description import DEFAULT_GAIT, RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
 from tensegrity_gym.model.randomization import Randomization, resolve_randomization
@@ -335,10 +335,7 @@ def _check_residual(
     deadband: float,
 ) -> None:
     """Refuse residual actions' arguments that cannot be (see :func:`make_env`)."""
-    if check_number("residual_deadband", deadband, non_negative=True) >= 1.0:
-        raise ValueError(
-            f"make: residual_deadband={deadband!r} must be below 1 (the action's bound)"
-        )
+    check_fraction("residual_deadband", deadband)
     if residual_gait is None and deadband != 0.0:
         raise ValueError(
             "make: residual_deadband leaves small corrections of the gait out; "

@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from tensegrity_gym.model.checks import check_number, check_open
+from tensegrity_gym.model.checks import check_fraction, check_open
 from tensegrity_gym.model.protocols import backend_can_wait
 
 if TYPE_CHECKING:
@@ -88,6 +88,11 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         self._observe_base = False
         self.observation_space = task.observation_space
         self._base: NDArray[np.float64] | None = None  # the base's action for the next step
+        if action_base is None and residual_deadband != 0.0:
+            raise ValueError(
+                "TensegrityEnv: residual_deadband leaves small corrections of a base out; "
+                "give action_base too"
+            )
         if action_base is not None:
             self.correct(
                 action_base, residual_scale, observe=observe_base, deadband=residual_deadband
@@ -161,9 +166,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         thresholding), so that a policy corrects the base only where its action is
         confidently away from 0: a marginal gait is not perturbed by a policy's small,
         noisy means. The next step needs a reset first."""
-        deadband = check_number("deadband", deadband, non_negative=True, where="correct")
-        if deadband >= 1.0:
-            raise ValueError(f"correct: deadband={deadband!r} must be below 1 (the action's bound)")
+        deadband = check_fraction("deadband", deadband, where="correct")
         self.action_base, self.residual_scale, self._observe_base = base, scale, observe
         self.residual_deadband = float(deadband)
         self._estimate = self._observation = self._base = None
@@ -349,15 +352,19 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         driven: NDArray[np.float64],
     ) -> NDArray[np.float32]:
         """What the control cost charges, (m,) in [-1, 1]: the policy's ``action``; with
-        residual actions that is its correction of the ``base`` before the scale, so the
-        gait's own commands are free and the cost does not teach the policy to stop
-        rolling. Where the backend drove other rest-length targets (m) than those
-        ``asked`` (a replayed log; a robot's limiter), the action ``driven`` implies."""
+        residual actions that is its correction of the ``base`` before the scale (and
+        before the deadband), so the gait's own commands are free and the cost does not
+        teach the policy to stop rolling. Where the backend drove other rest-length
+        targets (m) than those ``asked`` (a replayed log; a robot's limiter), the least
+        action that implies ``driven``."""
         # ``driven is asked`` where the backend reported no command: the usual step.
         if driven is not asked and not np.allclose(driven, asked, rtol=0.0, atol=1e-9):
             action = self.targets_to_action(driven).astype(np.float64)
             if base is not None:
-                action = (action - base) / self.residual_scale
+                correction = (action - base) / self.residual_scale
+                # the deadband's inverse: a correction c came from |c| + d at least
+                d = self.residual_deadband * (correction != 0.0)
+                action = np.sign(correction) * (np.abs(correction) + d)
         return np.clip(action, -1.0, 1.0).astype(np.float32)
 
     def render(self) -> NDArray[np.uint8] | None:

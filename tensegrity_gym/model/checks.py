@@ -12,7 +12,13 @@ import numpy as np
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
-__all__ = ["all_finite", "check_number", "check_open", "check_optional_number"]
+__all__ = [
+    "all_finite",
+    "check_fraction",
+    "check_number",
+    "check_open",
+    "check_optional_number",
+]
 
 
 def check_number(
@@ -39,6 +45,14 @@ def check_number(
     if not math.isfinite(x) or (positive and x <= 0.0) or (non_negative and x < 0.0):
         raise ValueError(f"{where}: {name}={value!r} must be a finite number{bound}")
     return x
+
+
+def check_fraction(name: str, value: object, *, where: str = "make") -> float:
+    """``value`` as a float in [0, 1), or ValueError ``"{where}: {name}=...: must be a
+    finite number in [0, 1)"``."""
+    if isinstance(value, bool) or not isinstance(value, Real) or not 0.0 <= float(value) < 1.0:
+        raise ValueError(f"{where}: {name}={value!r} must be a finite number in [0, 1)")
+    return float(value)
 
 
 def check_optional_number(
