@@ -20,7 +20,12 @@ import numpy as np
 import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the ids)
-from tensegrity_gym.model.description import DEFAULT_GAIT, STEER_GAIT, load_robot
+from tensegrity_gym.model.description import (
+    DEFAULT_GAIT,
+    STEER_GAIT,
+    RobotDescription,
+    load_robot,
+)
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec
 from tensegrity_gym.tasks.gaits import FaceGait
 
@@ -32,7 +37,6 @@ if TYPE_CHECKING:
 
     from agents.cluster import Executor
     from tensegrity_gym.envs.roll_env import TensegrityEnv
-    from tensegrity_gym.model.description import RobotDescription
 
 __all__ = [
     "BASELINES",
@@ -452,13 +456,15 @@ def evaluate_policies(
     ``executor`` (default: here, one after the other; an :class:`agents.cluster.RayExecutor`
     runs them as Ray tasks, with the same results: an episode depends on its seed alone)."""
     for policy in policies:
-        task = gym.spec(policy.env_id).kwargs.get("task", "roll")
+        made = gym.spec(policy.env_id).kwargs
+        task = made.get("task", "roll")
         if task not in MEASURED_TASKS:
             raise ValueError(
                 f"{policy.env_id}: evaluate measures progress along a goal heading (the "
                 f"'roll' task) or toward goal points ('goto'); it does not evaluate the "
                 f"{task!r} task"
             )
+        _check_robot(policy.env_id, made.get("robot", "three_bar"), conditions)
     from agents.cluster import LocalExecutor
 
     jobs = [
@@ -478,6 +484,16 @@ def evaluate_policies(
     for (p, c, _), result in zip(jobs, done, strict=True):
         results[policies[p].name][conditions[c].name].append(result)
     return results
+
+
+def _check_robot(env_id: str, robot: Any, conditions: Sequence[Condition]) -> None:
+    """Refuse, before any episode runs, a condition whose estimator cannot run on the
+    robot of ``env_id`` (``robot``: its preset name, YAML path or description)."""
+    name = robot.name if isinstance(robot, RobotDescription) else load_robot(robot).name
+    for c in conditions:
+        missing = estimator_spec(c.estimator).missing(None, name)
+        if missing is not None:
+            raise ValueError(f"{env_id}: condition {c.name!r}: {missing}")
 
 
 _ENV: dict[tuple[Any, ...], gym.Env[Any, Any]] = {}

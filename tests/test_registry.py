@@ -164,6 +164,20 @@ def test_evaluate_refuses_a_task_it_cannot_measure_in_one_line() -> None:
         del gym.registry["tensegrity_gym/ThreeBarStandStill-v0"]
 
 
+def test_evaluate_refuses_an_estimator_the_robot_has_not_before_any_episode() -> None:
+    """The InEKF supports the 3-bar robots only: evaluating a SUPERball policy under it
+    fails at once, in one line naming the env, the condition and the robots."""
+    from agents.evaluate import evaluate_policies
+
+    policy = random_policy("tensegrity_gym/SuperBallRoll-v0", seed=0)
+    message = (
+        r"^tensegrity_gym/SuperBallRoll-v0: condition 'inekf': estimator 'inekf' supports "
+        r"the robots \['three_bar', 'three_bar_large'\], not 'superball'$"
+    )
+    with pytest.raises(ValueError, match=message):
+        evaluate_policies([policy], [condition("oracle"), condition("inekf")], episodes=1)
+
+
 def test_the_simulator_says_exactly_the_kinds_it_produces() -> None:
     from tensegrity_gym.model.description import load_robot
     from tensegrity_gym.model.samples import GROUND_TRUTH, SAMPLE_KINDS
