@@ -316,3 +316,32 @@ def test_record_and_view_make_a_runs_env_with_what_its_actions_mean(tmp_path: Pa
     assert policy_env_kwargs(str(run)) == expected
     assert policy_env_kwargs(str(run / "model.zip")) == expected
     assert policy_env_kwargs("scripted") == policy_env_kwargs(str(tmp_path / "none")) == {}
+
+
+def test_residual_corrections_counts_the_actions_that_leave_the_deadband() -> None:
+    """``scripts/residual_corrections.py``: a policy whose actions stay within the band
+    corrects nothing; one whose entries leave it corrects those, by their excess."""
+    import importlib.util
+    from pathlib import Path
+
+    from agents.evaluate import LoadedPolicy
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "residual_corrections.py"
+    spec = importlib.util.spec_from_file_location("residual_corrections", path)
+    assert spec is not None and spec.loader is not None
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    kwargs = {"residual_gait": 0.5, "residual_deadband": 0.2}
+    env = gym.make(THREE_BAR, estimator="oracle", **kwargs)
+    m = env.action_space.shape[0]
+    inside = np.full(m, 0.15, dtype=np.float32)
+    quiet = LoadedPolicy("quiet", THREE_BAR, "-", lambda obs: inside, env_kwargs=kwargs)
+    f = script.measure(quiet, env, episodes=2, seed=1000, steps=5)
+    assert f["steps"] == 10 and f["entries_corrected"] == f["correction_rms"] == 0.0
+    assert f["largest_entry"] == pytest.approx(0.15)
+    half_out = np.where(np.arange(m) % 2 == 0, 0.5, 0.1).astype(np.float32)
+    loud = LoadedPolicy("loud", THREE_BAR, "-", lambda obs: half_out, env_kwargs=kwargs)
+    f = script.measure(loud, env, episodes=1, seed=1000, steps=5)
+    assert f["steps_corrected"] == 1.0
+    assert f["entries_corrected"] == pytest.approx(np.mean(np.arange(m) % 2 == 0))
+    env.close()
