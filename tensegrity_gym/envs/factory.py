@@ -336,25 +336,20 @@ def _check_residual(
 ) -> None:
     """Refuse residual actions' arguments that cannot be (see :func:`make_env`)."""
     check_fraction("residual_deadband", deadband)
-    if residual_gait is None and deadband != 0.0:
-        raise ValueError(
-            "make: residual_deadband leaves small corrections of the gait out; "
-            "give residual_gait (the correction's scale) too"
-        )
     if not isinstance(base_gait, str):
         raise ValueError(f"make: base_gait must be a gait's name, got {base_gait!r}")
     if not isinstance(observe, bool):
         raise ValueError(f"make: observe_base must be True or False, got {observe!r}")
-    if residual_gait is None and observe:
-        raise ValueError(
-            "make: observe_base=True shows the policy the gait residual actions correct; "
-            "give residual_gait (the correction's scale) too"
-        )
-    if residual_gait is None and base_gait != DEFAULT_GAIT:
-        raise ValueError(
-            f"make: base_gait={base_gait!r} names the gait residual actions correct; "
-            "give residual_gait (the correction's scale) too"
-        )
+    # Each shapes residual actions: given without them, it would silently do nothing.
+    needs_residual = (
+        (deadband != 0.0, "residual_deadband leaves small corrections of the gait out"),
+        (observe, "observe_base=True shows the policy the gait residual actions correct"),
+        (base_gait != DEFAULT_GAIT, f"base_gait={base_gait!r} names the gait residual "
+                                    "actions correct"),
+    )  # fmt: skip
+    for given, what in needs_residual:
+        if residual_gait is None and given:
+            raise ValueError(f"make: {what}; give residual_gait (the correction's scale) too")
     if residual_gait is not None:
         check_number("residual_gait", residual_gait, positive=True)
         if base_gait not in description.gaits:
