@@ -6,6 +6,7 @@ import argparse
 import ast
 import json
 import logging
+import math
 import signal
 import sys
 from pathlib import Path
@@ -91,14 +92,38 @@ def _pairs(pairs: list[tuple[str, Any]] | None, option: str) -> dict[str, Any]:
     return out
 
 
-def _positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0."""
+def _finite_float(text: str) -> float:
+    """``text`` as a finite float, or ArgumentTypeError."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"must be a number, got {text!r}") from None
-    if not (value > 0 and value < float("inf")):
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    value = _finite_float(text)
+    if value <= 0:
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def _non_negative_float(text: str) -> float:
+    """An argparse type: a finite number >= 0."""
+    value = _finite_float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+def _port(text: str) -> int:
+    """An argparse type: a TCP port, 0 (a free one) to 65535."""
+    value = _count(text)
+    if value > 65535:
+        raise argparse.ArgumentTypeError(f"must be a TCP port in [0, 65535], got {value}")
     return value
 
 
@@ -129,6 +154,12 @@ def _env_help(what: str) -> str:
 
     ids = sorted(i for i in gym.registry if i.startswith("tensegrity_gym/"))
     return f"{what}; registered: {', '.join(ids)}"
+
+
+def _one_line(err: BaseException) -> str:
+    """An error's message on one line (whitespace runs, newlines among them, made one
+    space), or its type's name where it has none."""
+    return " ".join(str(err).split()) or type(err).__name__
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -221,7 +252,7 @@ def _train(args: argparse.Namespace) -> int:
         log.warning("interrupted: the model reached so far is in %s", args.out)
         return 130
     except ValueError as err:
-        log.error("%s", err)
+        log.error("%s", _one_line(err))
         return 2
     sys.stdout.write(f"{path}\n")
     return 0
@@ -240,7 +271,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             ray_address=args.ray,
         )
     except ValueError as err:
-        log.error("%s", err)
+        log.error("%s", _one_line(err))
         return 2
     sys.stdout.write(f"report: {Path(args.out) / 'report.md'}\n")
     for policy, by_cond in report["results"].items():
@@ -350,7 +381,7 @@ def _estimate(args: argparse.Namespace) -> int:
     except BagsFailedError as err:  # each failure is logged; the other bags were estimated
         results, failed = err.results, err
     except BAG_FAILURES as err:
-        log.error("%s", err)
+        log.error("%s", _one_line(err))
         return 2
     for r in results:
         line = f"{r['bag']}: {r['steps']} steps, {r['duration_s']:.1f} s in {r['wall_s']:.1f} s"
@@ -359,6 +390,10 @@ def _estimate(args: argparse.Namespace) -> int:
                 f"; CoM error {100 * r['com_rmse_m']:.2f} cm RMS, "
                 f"ATE {100 * r.get('ate_rmse_m', float('nan')):.2f} cm"
             )
+        rejected = r.get("estimator_rejected") or {}
+        if rejected:
+            kinds = ", ".join(f"{k} {v}" for k, v in rejected.items())
+            line += f"; {sum(rejected.values())} implausible measurements rejected ({kinds})"
         sys.stdout.write(line + "\n")
     sys.stdout.write(f"written to {args.out}\n")
     if failed is not None:
@@ -415,12 +450,13 @@ def _add_view(sub: Any, env_help: str) -> None:
                    "folder")  # fmt: skip
     v.add_argument("--bag", default=None, help="replay this bag instead (its commands drive it)")
     v.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
-    v.add_argument("--port", type=_count, default=DEFAULT_PORT, help="WebSocket port")
-    v.add_argument("--speed", type=float, default=1.0,
+    v.add_argument("--port", type=_port, default=DEFAULT_PORT,
+                   help="WebSocket port (0: any free one)")  # fmt: skip
+    v.add_argument("--speed", type=_non_negative_float, default=1.0,
                    help="run time per wall-clock time; 0: as fast as it runs")  # fmt: skip
     v.add_argument("--episodes", type=_count, default=0, help="episodes; 0: until Ctrl-C")
     v.add_argument("--steps", type=_positive_int, default=None, help="control steps per episode")
-    v.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
+    v.add_argument("--seed", type=_count, default=0, help="episode k uses seed + k")
     v.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
                    help="the estimator run in the loop")  # fmt: skip
     v.set_defaults(func=_view)
@@ -492,12 +528,12 @@ def _add_demo(sub: Any) -> None:
     )
     seeding = demo.add_mutually_exclusive_group()
     seeding.add_argument(
-        "--seed", type=int, default=0,
+        "--seed", type=_count, default=0,
         help="seeds the training (the evaluation's episodes are the same for every seed)",
     )  # fmt: skip
     seeding.add_argument(
         "--seeds",
-        type=int,
+        type=_count,
         nargs="+",
         help="run the demo once per seed (into OUT/seed_<s>) and report mean ± spread "
         "across them in OUT/seeds.md",
@@ -528,7 +564,7 @@ def _add_train(sub: Any, env_help: str) -> None:
     tr.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
                     help="what the policy's observations are estimated with")  # fmt: skip
     tr.add_argument("--timesteps", type=_positive_int, default=None, help="default: the config's")
-    tr.add_argument("--seed", type=int, default=0, help="seeds the envs and the algorithm")
+    tr.add_argument("--seed", type=_count, default=0, help="seeds the envs and the algorithm")
     tr.add_argument(
         "--n-envs", type=_positive_int, default=None, help="workers; default: the config's"
     )
@@ -579,7 +615,7 @@ def _add_evaluate(sub: Any) -> None:
         choices=condition_names(),
         help="estimators and worlds to evaluate under",
     )
-    ev.add_argument("--seed", type=int, default=1000, help="episode k uses seed + k")
+    ev.add_argument("--seed", type=_count, default=1000, help="episode k uses seed + k")
     ev.add_argument("--out", required=True, help="folder for the report")
     _add_ray(ev, "run each episode as a Ray task")
     ev.set_defaults(func=_evaluate)
@@ -591,7 +627,7 @@ def _add_gait(sub: Any, env_help: str) -> None:
     gait = sub.add_parser("gait", help="roll a robot with its scripted gait; plot the CoM")
     gait.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help)
     gait.add_argument("--steps", type=_positive_int, default=300, help="control steps (10 Hz)")
-    gait.add_argument("--seed", type=int, default=0, help="the episode's seed")
+    gait.add_argument("--seed", type=_count, default=0, help="the episode's seed")
     gait.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
                       help="the estimator whose CoM is plotted against the truth")  # fmt: skip
     gait.add_argument(
@@ -629,19 +665,19 @@ def _add_bench(sub: Any) -> None:
     )
     bench.add_argument(
         "--bag-minutes",
-        type=float,
+        type=_non_negative_float,
         default=10.0,
         help="minutes of 3-bar recording whose reading and replay are timed (0: skip)",
     )
     bench.add_argument(
         "--link-steps",
-        type=int,
+        type=_count,
         default=300,
         help="10 Hz steps of the robot-link latency test against the emulator (0: skip)",
     )
     bench.add_argument(
         "--soak-minutes",
-        type=float,
+        type=_non_negative_float,
         default=0.0,
         help="minutes of emulated operation watched for memory and latency growth",
     )
@@ -663,7 +699,7 @@ def _add_recordings(sub: Any, env_help: str) -> None:
     )
     rec.add_argument("--episodes", type=_positive_int, default=1, help="episodes (bags)")
     rec.add_argument("--steps", type=_positive_int, default=None, help="control steps per episode")
-    rec.add_argument("--seed", type=int, default=0, help="episode k uses seed + k")
+    rec.add_argument("--seed", type=_count, default=0, help="episode k uses seed + k")
     rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
                      help="the estimator run (and recorded) in the loop")  # fmt: skip
     rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
@@ -682,7 +718,7 @@ def _add_recordings(sub: Any, env_help: str) -> None:
     est.add_argument("--out", required=True, help="folder for the results")
     est.add_argument(
         "--seed",
-        type=int,
+        type=_count,
         default=0,
         help="seed of the generator handed to the estimator (the ICP tracker's RANSAC draws "
         "from it; the UKF and the oracle are deterministic and draw nothing)",
@@ -711,7 +747,7 @@ def _add_recordings(sub: Any, env_help: str) -> None:
         "--env", default=None, help=_env_help("or record a calibration run of this env id")
     )
     cal.add_argument("--seconds", type=float, default=120.0, help="length of that run (s)")
-    cal.add_argument("--world-seed", type=int, default=0, help="the simulated lab's seed")
+    cal.add_argument("--world-seed", type=_count, default=0, help="the simulated lab's seed")
     cal.add_argument("--robot", default=None, help="robot preset or YAML, for a bare bag")
     cal.add_argument("--out", required=True, help="the calibration file to write (YAML)")
     cal.set_defaults(func=_calibrate)
@@ -734,14 +770,15 @@ def _add_identify(sub: Any) -> None:
     ide.add_argument("--robot", default=None, help="start from this preset or YAML, not the bag's")
     ide.add_argument("--model", choices=sorted(MODELS), default="sim",
                      help="the simulator's physics, or the UKF's spring-mass model")  # fmt: skip
-    ide.add_argument("--segment-seconds", type=float, default=2.0, help="length of a segment")
+    ide.add_argument("--segment-seconds", type=_positive_float, default=2.0,
+                     help="length of a segment (at least one control period)")  # fmt: skip
     ide.add_argument("--max-evaluations", type=_positive_int, default=MAX_EVALUATIONS,
                      help="the search's budget, in candidates scored on every IMU window "
                      "(half of it is spent first on a quarter of the windows, four "
                      "candidates to one)")  # fmt: skip
     ide.add_argument("--workers", type=_positive_int, default=None,
                      help="processes (default: one per core)")  # fmt: skip
-    ide.add_argument("--seed", type=int, default=0, help="seeds CMA-ES")
+    ide.add_argument("--seed", type=_count, default=0, help="seeds CMA-ES")
     ide.add_argument(
         "--imu-windows", type=_count, default=300,
         help="periods at most (spread over the bag) whose IMU readings the fit compares "
@@ -767,7 +804,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.verbose:
             log.exception("%s failed", args.command)
         else:
-            log.error("%s", " ".join(str(err).split()) or type(err).__name__)
+            log.error("%s", _one_line(err))
         return 2
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+import math
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -618,6 +619,11 @@ def identify_run(
     with one line where it cannot."""
     if model not in MODELS:
         raise IdentifyError(f"identify: unknown model {model!r}; choose from {sorted(MODELS)}")
+    if not (math.isfinite(segment_seconds) and segment_seconds >= run.control_period):
+        raise IdentifyError(
+            f"identify: segment_seconds (--segment-seconds) = {segment_seconds!r} must be a "
+            f"finite number of seconds >= the run's control period, {run.control_period:g} s"
+        )
     start = description or run.description
     names = tuple(factor_names(groups, start))
     if not names:

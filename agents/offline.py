@@ -420,6 +420,9 @@ def _estimate_one(
         "lost_spans": [span.as_dict() for span in backend.reader.lost_spans],
         "out_of_range": dict(backend.out_of_range),
         "reinitialisations": int(sum(e.reinitialised for e in estimates)),
+        # Measurements the estimator's screen refused as physically impossible (a
+        # range of -50 m), by kind: counted since its reset, so the last estimate's.
+        "estimator_rejected": dict(sorted((estimates[-1].rejected or {}).items())),
         "finite": bool(finite.all()),
         **calibration_against_truth(backend),
     }

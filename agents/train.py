@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
+from agents.hyperparams import check_hyperparams, check_rollout
 from tensegrity_gym.model.registry import estimator_spec
 
 if TYPE_CHECKING:
@@ -28,6 +29,8 @@ if TYPE_CHECKING:
     from stable_baselines3.common.base_class import BaseAlgorithm
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecEnv
+
+    from agents.guards import TrainingDivergedError
 
 __all__ = [
     "ALGORITHMS",
@@ -139,17 +142,21 @@ def load_hyperparams(
             f"{path}: no entry for {env_id!r} (nor its robot's Roll id); entries: {ids}"
         )
     valid = _RUN_KEYS | (set(inspect.signature(cls.__init__).parameters) - _OWN_ARGS)
-    given = {f"{path}: {env_id}": dict(doc[entry]), "--hyperparams": dict(overrides or {})}
-    for where, entries in given.items():
+    # the entry that holds the values, which for another task's id is not env_id's own
+    given = {f"{path}: {entry}": dict(doc[entry]), "--hyperparams": dict(overrides or {})}
+    where: dict[str, str] = {}
+    for source, entries in given.items():
         unknown = sorted(set(entries) - valid)
         if unknown:
             raise ValueError(
-                f"{where}: unknown keys {unknown} for {algo}; valid keys: {sorted(valid)}"
+                f"{source}: unknown keys {unknown} for {algo}; valid keys: {sorted(valid)}"
             )
         for key in ("normalize", "policy_kwargs"):
             if isinstance(entries.get(key), str):
-                entries[key] = parse_config_value(entries[key], f"{where}.{key}")
-    return {**given[f"{path}: {env_id}"], **given["--hyperparams"]}
+                entries[key] = parse_config_value(entries[key], f"{source}.{key}")
+        where |= dict.fromkeys(entries, source)
+    # only the values the run uses: a config's, where --hyperparams replaces it, is not
+    return check_hyperparams(algo, {**given[f"{path}: {entry}"], **given["--hyperparams"]}, where)
 
 
 @dataclass(frozen=True)
@@ -253,9 +260,16 @@ def train(
     ``out`` receives ``model.zip`` and ``vecnormalize.pkl`` (when the config normalises),
     ``config.yaml``, ``checkpoints/``, ``monitor/`` and ``tb/`` (TensorBoard);
     ``callbacks`` run beside the checkpointing; ``hyperparams`` are put over the config's
-    (``config.yaml`` keeps the result). Ctrl-C
+    (``config.yaml`` keeps the result), and a value out of its range
+    (:data:`agents.hyperparams.VALID`) is a ValueError before any env is made. Ctrl-C
     saves the model reached so far as ``out/model.zip`` (``config.yaml`` then says
     ``interrupted: true``) and re-raises.
+
+    A checkpoint is saved after the first update past each ``checkpoint_every`` steps,
+    where the model is finite. A non-finite loss, weight or statistic stops the run
+    with :class:`agents.guards.TrainingDivergedError` (a ValueError); ``model.zip`` is
+    then the last good checkpoint, or there is none (``config.yaml`` says which in
+    ``diverged``). No file is left half-written.
 
     ``ray_address`` (``HOST:PORT``, ``auto`` or ``local``) steps the ``n_envs`` envs on
     ``workers`` Ray actors of that cluster (default: one per CPU of the cluster, at most
@@ -281,6 +295,9 @@ def train(
         )
     if workers is not None and ray_address is None:
         raise ValueError("workers are Ray actors: give the cluster's address (--ray)")
+    if algo == "ppo":  # its minibatches are drawn from one rollout of n_steps * n_envs
+        ppo = _defaults(algo) | params
+        check_rollout(ppo["n_steps"], envs, ppo["batch_size"], ppo["normalize_advantage"])
     kwargs = {"estimator": estimator, **(env_kwargs or {})}
     config = TrainConfig(env_id, algo, estimator, total, seed, envs, dict(params), kwargs)
     if ray_address is None:
@@ -294,6 +311,12 @@ def train(
         return _run(config, out, checkpoint_every, progress_bar, callbacks, workers)
 
 
+def _defaults(algo: str) -> dict[str, Any]:
+    """The algorithm's own values of the hyperparameters a config leaves out."""
+    parameters = inspect.signature(_algorithm_class(algo).__init__).parameters.values()
+    return {p.name: p.default for p in parameters if p.default is not inspect.Parameter.empty}
+
+
 def _run(
     config: TrainConfig,
     out: Path,
@@ -304,8 +327,9 @@ def _run(
 ) -> Path:
     """:func:`train`'s run, its arguments checked; ``workers``: Ray actors, or None."""
     import torch
-    from stable_baselines3.common.callbacks import CheckpointCallback
     from stable_baselines3.common.vec_env import VecNormalize
+
+    from agents.guards import FiniteGuard, replace_atomically
 
     params = dict(config.hyperparams)
     out.mkdir(parents=True, exist_ok=True)
@@ -318,36 +342,38 @@ def _run(
         norm_kwargs = normalize if isinstance(normalize, dict) else {}
         venv = VecNormalize(venv, gamma=params.get("gamma", 0.99), **norm_kwargs)
     model = _make_model(config, params, venv, out)
-    checkpoints = CheckpointCallback(
-        save_freq=max(checkpoint_every // config.n_envs, 1),
-        save_path=str(out / "checkpoints"),
-        name_prefix="model",
-        save_vecnormalize=True,
-    )
+    guard = FiniteGuard(out, checkpoint_every)  # it saves the checkpoints, of finite models
     extra = [] if workers is None else [_restart_logger(venv)]
     interrupted = False
+    failure: TrainingDivergedError | None = None
     try:
         model.learn(
             config.timesteps,
-            callback=[checkpoints, *extra, *callbacks],
+            callback=[guard, *extra, *callbacks],
             progress_bar=progress_bar,
             tb_log_name=config.algo,
         )
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted after %d steps: saving the model reached", model.num_timesteps)
+    except ValueError as err:  # the guard's TrainingDivergedError, or torch refusing a NaN
+        failure = guard.divergence(model, err)
+        if failure is None:
+            raise
     finally:
-        model.save(out / "model.zip")
-        if isinstance(venv, VecNormalize):
-            venv.save(str(out / "vecnormalize.pkl"))
+        failure = guard.finish(model, failure)  # model.zip: never one with a NaN in it
         record = asdict(config) | {
             "completed_timesteps": int(model.num_timesteps),
             "interrupted": interrupted,
+            "diverged": None if failure is None else str(failure),
         }
         if workers is not None:
             record |= {"ray_workers": workers, "worker_restarts": _restarts(venv)}
-        (out / "config.yaml").write_text(yaml.safe_dump(record, sort_keys=False))
+        text = yaml.safe_dump(record, sort_keys=False)
+        replace_atomically(out / "config.yaml", lambda path: path.write_text(text))
         venv.close()
+    if failure is not None:
+        raise failure
     if interrupted:
         raise KeyboardInterrupt
     return out / "model.zip"
@@ -365,6 +391,8 @@ def _make_model(
     except ImportError:
         log.warning("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
         tb = None
+    if isinstance(params.get("train_freq"), list):  # [n, unit]: SB3 takes a tuple only
+        params["train_freq"] = tuple(params["train_freq"])
     return _algorithm_class(config.algo)(
         policy,
         venv,

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 from hardware.bag import messages as m
 from hardware.bag.writer import MessageWriter
 from hardware.recording import WriterSink
+from tensegrity_gym.model.checks import check_whole
 from tensegrity_gym.model.samples import seconds_to_ns
 
 if TYPE_CHECKING:
@@ -110,6 +111,7 @@ class FoxgloveSink(WriterSink):
         markers: bool = True,
         wall_clock: bool = True,
     ) -> None:
+        check_whole("port", port, 0, 65535, where="FoxgloveSink")
         if not speed >= 0:
             raise ValueError(f"viewer speed must be 0 (no pacing) or positive, got {speed}")
         super().__init__(run_info, markers=markers, wall_clock=wall_clock)

@@ -167,6 +167,7 @@ def test_training_writes_model_statistics_config_logs_and_checkpoints(tiny_run: 
     assert config["env_id"] == THREE_BAR and config["estimator"] == "oracle"
     assert config["seed"] == 3 and config["completed_timesteps"] == 128
     assert config["hyperparams"]["n_steps"] == 64 and not config["interrupted"]
+    assert config["diverged"] is None
     assert config["hyperparams"]["gamma"] == 0.97  # --hyperparams, over the config's
     assert sorted(p.name for p in (tiny_run / "checkpoints").glob("*.zip")) == [
         "model_128_steps.zip",

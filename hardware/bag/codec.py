@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from hardware.bag import messages as m
 from hardware.bag.kinds import TopicTable
+from tensegrity_gym.model.checks import yaml_problem
 from tensegrity_gym.model.description import dump_robot
 from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.kinematics import rod_axes, rod_centres, rod_quaternion_from_axis
@@ -556,8 +557,10 @@ def run_info_from_text(text: str) -> dict[str, Any]:
     """The run info mapping of ``/tensegrity/run_info``; a clear error if it is not one."""
     try:
         doc = yaml.safe_load(text)
-    except (yaml.YAMLError, RecursionError) as err:
-        raise MessageError(f"run info is not YAML: {err}") from None
+    except yaml.YAMLError as err:
+        raise MessageError(f"run info is not YAML: {yaml_problem(err)}") from None
+    except RecursionError:
+        raise MessageError("run info is not YAML: nested too deeply") from None
     if doc is None:
         return {}
     if not isinstance(doc, dict):

@@ -378,6 +378,16 @@ class BagReader:
         counts = [c.msgcount for c in self._connections if c.topic == COMMAND_TOPIC]
         return sum(counts) if counts and all(counts) else None
 
+    def require_commands(self, use: str) -> None:
+        """Raise :class:`BagError` naming the command topic if the bag has none of its
+        messages: ``use`` (a replay, a fit) needs the run cut into control periods, and
+        without commands all of it would be one start period."""
+        if not any(c.topic == COMMAND_TOPIC and c.msgcount for c in self._connections):
+            raise BagError(
+                f"{self.path}: no {COMMAND_TOPIC} messages; {use} needs the commands the "
+                "robot was sent, one a control period"
+            )
+
     @property
     def lost_spans(self) -> list[LostSpan]:
         """The damaged chunks met so far, in time order: their time spans, and their
@@ -493,6 +503,7 @@ def read_run(
 ) -> RecordedRun:
     """A whole bag in memory, as the :class:`RecordedRun` an estimator study replays."""
     with BagReader(path, description=description, strict=strict) as reader:
+        reader.require_commands("reading it as a run")
         d = reader.description
         periods = reader.periods()
         start = next(periods)

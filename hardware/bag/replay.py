@@ -55,6 +55,11 @@ class ReplayBackend:
         strict: bool = False,
     ) -> None:
         self.reader = BagReader(path, description=description, strict=strict)
+        try:
+            self.reader.require_commands("replaying it")
+        except BaseException:
+            self.reader.close()
+            raise
         self.description = self.reader.description
         self.control_period = self.reader.control_period
         self._periods: Iterator[BagPeriod] | None = None

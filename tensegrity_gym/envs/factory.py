@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 from tensegrity_gym.envs.calibration import apply_calibration, check_calibration
 from tensegrity_gym.envs.roll_env import TensegrityEnv
-from tensegrity_gym.model.checks import check_fraction, check_number
+from tensegrity_gym.model.checks import check_fraction, check_number, check_whole
 from tensegrity_gym.model.description import DEFAULT_GAIT, RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
 from tensegrity_gym.model.randomization import Randomization, resolve_randomization
@@ -150,6 +150,8 @@ def _check_arguments(
     time_step: object,
     terrain: object,
     driver: object,
+    viewer_port: object,
+    viewer_speed: object,
 ) -> None:
     """Refuse a bad argument of ``make`` by name, before anything is built."""
     modes = TensegrityEnv.metadata["render_modes"]
@@ -160,6 +162,8 @@ def _check_arguments(
     check_number("spawn_radius", spawn_radius, non_negative=True)
     period = check_number("control_period", control_period, positive=True)
     step = check_number("time_step", time_step, positive=True)
+    check_whole("viewer_port", viewer_port, 0, 65535)
+    check_number("viewer_speed", viewer_speed, non_negative=True)
     if step > period:
         raise ValueError(
             f"make: time_step={time_step!r} is longer than control_period={control_period!r}"
@@ -291,6 +295,8 @@ def make_env(
         time_step=time_step,
         terrain=terrain,
         driver=driver,
+        viewer_port=viewer_port,
+        viewer_speed=viewer_speed,
     )
     check_calibration(calibration, world_seed)
     _check_residual(description, residual_gait, base_gait, observe_base, residual_deadband)

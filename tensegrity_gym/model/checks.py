@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    import yaml
     from numpy.typing import NDArray
 
 __all__ = [
@@ -18,6 +19,8 @@ __all__ = [
     "check_number",
     "check_open",
     "check_optional_number",
+    "check_whole",
+    "yaml_problem",
 ]
 
 
@@ -45,6 +48,18 @@ def check_number(
     if not math.isfinite(x) or (positive and x <= 0.0) or (non_negative and x < 0.0):
         raise ValueError(f"{where}: {name}={value!r} must be a finite number{bound}")
     return x
+
+
+def check_whole(name: str, value: object, low: int, high: int, *, where: str = "make") -> int:
+    """``value`` as an int in [``low``, ``high``], or ValueError ``"{where}: {name}=...
+    must be a whole number in [low, high]"`` (bools and 8.0 are refused; numpy ints pass)."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not (low <= int(value) <= high)
+    ):
+        raise ValueError(f"{where}: {name}={value!r} must be a whole number in [{low}, {high}]")
+    return int(value)
 
 
 def check_fraction(name: str, value: object, *, where: str = "make") -> float:
@@ -83,3 +98,15 @@ def all_finite(*arrays: NDArray[np.float64]) -> bool:
     if math.isfinite(sum(float(a.sum()) for a in arrays)):
         return True
     return all(bool(np.all(np.isfinite(a))) for a in arrays)
+
+
+def yaml_problem(err: yaml.YAMLError) -> str:
+    """PyYAML's error in one line: ``line L, column C: what it expected`` (its own
+    message spans several lines, with a quote of the text and a caret)."""
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None) or " ".join(str(err).split())
+    context = getattr(err, "context", None)
+    what = f"{context}, {problem}" if context else str(problem)
+    if mark is None:
+        return what
+    return f"line {mark.line + 1}, column {mark.column + 1}: {what}"

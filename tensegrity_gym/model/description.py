@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from tensegrity_gym.model.checks import yaml_problem
 from tensegrity_gym.model.samples import SAMPLE_KINDS
 
 if TYPE_CHECKING:
@@ -1014,7 +1015,7 @@ def loads_robot(text: str, source: str = "<text>") -> RobotDescription:
     try:
         doc = yaml.safe_load(text)
     except yaml.YAMLError as err:
-        raise DescriptionError(f"{source}: not valid YAML: {err}") from err
+        raise DescriptionError(f"{source}: not valid YAML: {yaml_problem(err)}") from None
     return parse_robot(doc, source)
 
 
@@ -1038,7 +1039,10 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
         try:
             text = path.read_text(encoding="utf-8")
         except UnicodeDecodeError as err:
-            raise DescriptionError(f"{source}: not valid YAML: not UTF-8 text ({err})") from err
+            raise DescriptionError(
+                f"{source}: not valid YAML: not UTF-8 text (byte {err.object[err.start]:#04x} "
+                f"at offset {err.start})"
+            ) from None
         except OSError as err:
             raise DescriptionError(f"{source}: cannot be read: {err}") from err
     return loads_robot(text, source)

@@ -12,7 +12,9 @@ its own with :func:`register_randomization`.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields, replace
+from numbers import Real
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -81,6 +83,7 @@ class Randomization:
             if value is None:
                 continue
             low, high = _interval(value, f.name)
+            object.__setattr__(self, f.name, (low, high))  # plain floats, hashable
             if f.name in _SCALES and low <= 0.0:
                 raise ValueError(f"Randomization.{f.name}={value!r}: a scale must be > 0")
             if f.name in _SHARES and not (0.0 <= low and high < 1.0):
@@ -137,14 +140,21 @@ class Randomization:
 
 
 def _interval(value: Any, name: str) -> Interval:
-    if (
-        not isinstance(value, tuple)
-        or len(value) != 2
-        or not all(isinstance(v, (int, float)) and np.isfinite(v) for v in value)
-        or value[0] > value[1]
-    ):
-        raise ValueError(f"Randomization.{name}={value!r} must be a (low, high) pair, low <= high")
-    return float(value[0]), float(value[1])
+    """``value`` as a (low, high) pair of floats: any two real numbers (numpy's
+    float32 too), finite, low <= high; else ValueError saying which of these fails."""
+    where = f"Randomization.{name}={value!r}"
+    if isinstance(value, (str, bytes)) or not isinstance(value, (tuple, list, np.ndarray)):
+        raise ValueError(f"{where} must be a (low, high) pair")
+    if len(value) != 2:
+        raise ValueError(f"{where} must be a (low, high) pair, got {len(value)} values")
+    if not all(isinstance(v, Real) and not isinstance(v, (bool, np.bool_)) for v in value):
+        raise ValueError(f"{where}: low and high must be numbers")
+    low, high = float(value[0]), float(value[1])
+    if not (math.isfinite(low) and math.isfinite(high)):
+        raise ValueError(f"{where}: low and high must be finite")
+    if low > high:
+        raise ValueError(f"{where} must have low <= high")
+    return low, high
 
 
 _SCALES = ("rod_mass", "cable_stiffness", "cable_damping", "friction", "motor_speed",

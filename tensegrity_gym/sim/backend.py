@@ -26,8 +26,8 @@ from tensegrity_gym.sim.sensors import (
     SensorSchedule,
     UwbModel,
 )
-from tensegrity_gym.sim.terrain import terrain_builder
-from tensegrity_gym.sim.world import PhysicsWorld
+from tensegrity_gym.sim.terrain import FixedTerrain, terrain_builder
+from tensegrity_gym.sim.world import PhysicsWorld, check_heightfield
 
 if TYPE_CHECKING:
     import os
@@ -324,6 +324,11 @@ class SimBackend:
         self.settle_time = settle_time
         self.terrain_source = terrain
         self._build_terrain = terrain_builder(terrain)
+        if isinstance(self._build_terrain, FixedTerrain):
+            try:  # at make, not at the first reset
+                check_heightfield(self._build_terrain.terrain)
+            except ValueError as err:
+                raise ValueError(f"make: {err}") from None
         self.terrain: Terrain | None = None
         """This episode's ground, from :meth:`reset` on (for tests and tools)."""
         self._n_steps = round(steps)
@@ -524,13 +529,26 @@ class SimBackend:
                 result = self.step(hold)
                 if result.diverged:
                     raise SettleError(
-                        "the simulation diverged while the robot rested at reset, waiting "
-                        f"for what the estimator lacks ({missing})"
+                        "the simulation diverged while the robot rested at reset"
+                        f"{self._ground_hint()}, waiting for what the estimator lacks "
+                        f"({missing})"
                     )
                 samples = [*samples, *result.samples]
         finally:
             self._rng = episode_rng
         return samples
+
+    def _ground_hint(self) -> str:
+        """`` on terrain NAME (...)`` where the robot rests on a map, else nothing: an
+        uneven ground is the first suspect when a robot at rest blows up."""
+        terrain = self.terrain
+        if terrain is None or terrain.is_flat:
+            return ""
+        relief = float(np.ptp(terrain.heights))
+        return (
+            f" on terrain {terrain.name or self.terrain_source!r} (heights span {relief:.3g} m, "
+            f"steepest slope {terrain.steepest_slope:.3g} m/m: check its height_scale)"
+        )
 
     def _episode_info(self) -> dict[str, object]:
         """What ``info`` says of this episode alone at reset: a randomised world's draws."""

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from tensegrity_gym.model.checks import yaml_problem
 from tensegrity_gym.model.registry import Registry
 
 if TYPE_CHECKING:
@@ -43,7 +44,9 @@ if TYPE_CHECKING:
     TerrainBuilder = Callable[[RobotDescription, np.random.Generator], "Terrain"]
 
 __all__ = [
+    "MAX_SLOPE",
     "TERRAINS",
+    "FixedTerrain",
     "Terrain",
     "flat",
     "load_terrain",
@@ -59,6 +62,12 @@ __all__ = [
 # step time; a quarter: about 2x).
 _HALF_SPAN = 16.0
 _CELL = 0.25
+
+MAX_SLOPE = 100.0
+"""The steepest rise (m/m) between neighbouring heights a map may have (89.4 degrees):
+a wall 1 m high on 1 cm cells. Beyond it a map is almost surely mis-scaled
+(``height_scale`` or ``cell_size`` off by orders of magnitude), and its near-vertical
+triangles throw a resting robot into the air."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,7 +90,7 @@ class Terrain:
     def __post_init__(self) -> None:
         h = np.array(self.heights, dtype=np.float64)
         cell = float(self.cell_size)
-        wrong = _grid_error(h, cell)
+        wrong = _grid_error(h, cell, self.origin)
         if wrong is not None:
             raise ValueError(
                 f"Terrain {self.name!r}: {wrong}" if self.name else f"Terrain: {wrong}"
@@ -95,6 +104,11 @@ class Terrain:
     def is_flat(self) -> bool:
         """Zero everywhere: the simulator keeps its infinite plane at z = 0."""
         return not np.any(self.heights)
+
+    @property
+    def steepest_slope(self) -> float:
+        """The largest |height difference| / cell_size (m/m) between neighbouring heights."""
+        return _steepest_slope(self.heights, self.cell_size)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -148,14 +162,33 @@ class Terrain:
         return float(np.max(h + r * np.sqrt(1.0 + g * g) - np.maximum(p[:, 2], r)))
 
 
-def _grid_error(heights: NDArray[np.float64], cell_size: float) -> str | None:
-    """What is wrong with a grid of ``heights`` (m) ``cell_size`` (m) apart, or None."""
+def _steepest_slope(heights: NDArray[np.float64], cell_size: float) -> float:
+    """The largest |difference| (m) between neighbouring ``heights`` over ``cell_size`` (m)."""
+    rise = max(float(np.abs(np.diff(heights, axis=a)).max()) for a in (0, 1))
+    return rise / cell_size
+
+
+def _grid_error(heights: NDArray[np.float64], cell_size: float, origin: object) -> str | None:
+    """What is wrong with a grid of ``heights`` (m) ``cell_size`` (m) apart whose first
+    cell is at ``origin`` (x, y) (m), or None."""
     if heights.ndim != 2 or min(heights.shape) < 2:
         return f"heights must be (rows, cols) with both >= 2, got shape {heights.shape}"
     if not np.all(np.isfinite(heights)):
         return "heights must all be finite"
     if not (math.isfinite(cell_size) and cell_size > 0.0):
         return f"cell_size={cell_size!r} must be finite and > 0"
+    try:
+        xy = np.asarray(origin, dtype=np.float64)
+    except (TypeError, ValueError):
+        xy = np.full(1, np.nan)
+    if xy.shape != (2,) or not np.all(np.isfinite(xy)):
+        return f"origin={origin!r} must be two finite numbers [x, y] (m)"
+    slope = _steepest_slope(heights, cell_size)
+    if slope > MAX_SLOPE:
+        return (
+            f"neighbouring heights rise {slope:.3g} m per m (cell_size {cell_size:g} m), "
+            f"steeper than {MAX_SLOPE:g} (89.4 degrees): check height_scale and cell_size"
+        )
     return None
 
 
@@ -234,8 +267,12 @@ def _read_sidecar(path: Path) -> dict[str, Any]:
         raise ValueError(f"its sidecar {sidecar.name} (cell_size, height_scale, origin) is missing")
     try:
         doc = yaml.safe_load(sidecar.read_text(encoding="utf-8"))
-    except (OSError, yaml.YAMLError) as err:
-        raise ValueError(f"{sidecar.name} could not be read: {type(err).__name__}") from None
+    except OSError as err:
+        raise ValueError(f"{sidecar.name} could not be read: {err.strerror or err}") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{sidecar.name} is not YAML text (not UTF-8)") from None
+    except yaml.YAMLError as err:
+        raise ValueError(f"{sidecar.name} is not valid YAML: {yaml_problem(err)}") from None
     if not isinstance(doc, dict) or "cell_size" not in doc:
         raise ValueError(f"{sidecar.name} must be a mapping with cell_size (m)")
     unknown = sorted(set(doc) - {"cell_size", "height_scale", "origin"})
@@ -286,10 +323,11 @@ def load_terrain(path: str | os.PathLike[str]) -> Terrain:
         rows, cols = raw.shape if raw.ndim == 2 else (0, 0)
         cell = float(doc["cell_size"])
         default = (-0.5 * (cols - 1) * cell, -0.5 * (rows - 1) * cell)
-        ox, oy = (float(v) for v in doc.get("origin", default))
-        wrong = _grid_error(raw, cell)
+        origin = doc.get("origin", default)
+        wrong = _grid_error(raw, cell, origin)
         if wrong is not None:
             raise ValueError(wrong)
+        ox, oy = (float(v) for v in origin)
     except (ValueError, TypeError, OSError) as err:
         reason = str(err).splitlines()[0] if str(err) else type(err).__name__
         raise ValueError(f"terrain={os.fspath(path)!r}: {reason}") from None
@@ -325,24 +363,28 @@ register_terrain("valley", valley)
 register_terrain("rough", rough)
 
 
-def _constant(terrain: Terrain) -> TerrainBuilder:
-    def build(description: RobotDescription, rng: np.random.Generator) -> Terrain:
-        del description, rng
-        return terrain
+@dataclass(frozen=True)
+class FixedTerrain:
+    """The builder of one map, the same every episode (a file or a :class:`Terrain`):
+    the simulator can check it at ``make``, before any episode."""
 
-    return build
+    terrain: Terrain
+
+    def __call__(self, description: RobotDescription, rng: np.random.Generator) -> Terrain:
+        del description, rng
+        return self.terrain
 
 
 def terrain_builder(terrain: object) -> TerrainBuilder:
     """The builder a ``terrain`` argument means: a name in :data:`TERRAINS`, a height
     map file (read now), or a :class:`Terrain`; else ValueError ``"terrain=...: ..."``."""
     if isinstance(terrain, Terrain):
-        return _constant(terrain)
+        return FixedTerrain(terrain)
     if isinstance(terrain, str) and terrain in TERRAINS:
         return TERRAINS[terrain]
     if isinstance(terrain, (str, os.PathLike)):
         if Path(terrain).suffix.lower() in (".npy", ".png"):
-            return _constant(load_terrain(terrain))
+            return FixedTerrain(load_terrain(terrain))
         raise ValueError(
             f"terrain={terrain!r}: not a registered terrain "
             f"({list(TERRAINS.names())}) nor a .npy or .png height map"

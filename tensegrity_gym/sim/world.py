@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import sys
+import weakref
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -36,7 +37,33 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import CameraConfig, RobotDescription
     from tensegrity_gym.sim.terrain import Terrain
 
-__all__ = ["Checkpoint", "PhysicsWorld", "Snapshot", "has_display"]
+__all__ = [
+    "MAX_HEIGHTFIELD_POINTS",
+    "Checkpoint",
+    "PhysicsWorld",
+    "Snapshot",
+    "check_heightfield",
+    "has_display",
+]
+
+MAX_HEIGHTFIELD_POINTS = 2048 * 2048
+"""The most heights a terrain may have. PyBullet (3.2.x) takes a heightfield's data in
+one command buffer and crashes the process (SIGSEGV, no message) from about 8 million
+points on (2,860 x 2,860 did here; 2,840 x 2,840 passed once and 2 x 4,000,000 failed
+once); half of that, 2048 x 2048, built and stepped every time."""
+
+
+def check_heightfield(terrain: Terrain) -> None:
+    """Raise ValueError if ``terrain`` has more heights than PyBullet's heightfield
+    holds (:data:`MAX_HEIGHTFIELD_POINTS`), naming its shape and the limit."""
+    rows, cols = terrain.heights.shape
+    if rows * cols > MAX_HEIGHTFIELD_POINTS:
+        name = f" {terrain.name!r}" if terrain.name else ""
+        raise ValueError(
+            f"terrain{name} has {rows} x {cols} = {rows * cols:,} heights; PyBullet's "
+            f"heightfield holds at most {MAX_HEIGHTFIELD_POINTS:,} (2048 x 2048): "
+            "use coarser cells or a smaller map"
+        )
 
 
 @contextmanager
@@ -122,6 +149,10 @@ class PhysicsWorld:
         self.client = pybullet.connect(pybullet.GUI if gui else pybullet.DIRECT)
         if self.client < 0:
             raise RuntimeError("could not start a PyBullet client")
+        # The clients this world started; a world dropped without close() (an env
+        # garbage-collected) disconnects them, not leaving a simulator's memory behind.
+        self._clients = [self.client]
+        self._release = weakref.finalize(self, _disconnect, self._clients)
         self._gui = gui
         self._floor_client = -1  # started on the first camera image
         self._floor_images: dict[
@@ -526,6 +557,7 @@ class PhysicsWorld:
                 self._floor_client = pybullet.connect(pybullet.DIRECT)
                 if self._floor_client < 0:
                     raise RuntimeError("could not start a PyBullet client for the floor")
+                self._clients.append(self._floor_client)
                 pybullet.createMultiBody(
                     0.0, -1, _floor_visual(self._floor_client), physicsClientId=self._floor_client
                 )
@@ -536,18 +568,19 @@ class PhysicsWorld:
         return image
 
     def close(self) -> None:
-        if self._floor_client >= 0:
-            try:
-                pybullet.disconnect(physicsClientId=self._floor_client)
-            except pybullet.error:
-                pass
-            self._floor_client = -1
-        if self.client >= 0:
-            try:
-                pybullet.disconnect(physicsClientId=self.client)
-            except pybullet.error:
-                pass  # already gone (e.g. the GUI window was closed)
-            self.client = -1
+        """Disconnect this world's PyBullet clients; closing again does nothing."""
+        self._release()
+        self._floor_client = -1
+        self.client = -1
+
+
+def _disconnect(clients: list[int]) -> None:
+    """Disconnect PyBullet ``clients`` (ids) and empty the list."""
+    while clients:
+        try:
+            pybullet.disconnect(physicsClientId=clients.pop())
+        except pybullet.error:
+            pass  # already gone (e.g. the GUI window was closed)
 
 
 _FLOOR_RGB = [0.55, 0.55, 0.5]
@@ -613,6 +646,7 @@ def _heightfield(client: int, terrain: Terrain) -> int:
     no visual shape: TinyRenderer and the GUI draw the collision mesh, in the floor's
     colour.
     """
+    check_heightfield(terrain)  # beyond it PyBullet crashes the process
     h = terrain.heights
     rows, cols = h.shape
     x0, x1, y0, y1 = terrain.extent
