@@ -119,6 +119,23 @@ def _non_negative_float(text: str) -> float:
     return value
 
 
+def _calibration_seconds(text: str) -> float:
+    """An argparse type: a calibration run's length (s), in the range
+    :func:`agents.calibration_run.check_seconds` takes."""
+    from agents.calibration_run import MAX_SECONDS, min_seconds
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds, got {text!r}") from None
+    if not min_seconds() <= value <= MAX_SECONDS:  # NaN fails too
+        raise argparse.ArgumentTypeError(
+            f"must be a number of seconds in [{min_seconds():g}, {MAX_SECONDS:g}] (the "
+            f"calibrator's samples need the least; more gains nothing), got {text}"
+        )
+    return value
+
+
 def _port(text: str) -> int:
     """An argparse type: a TCP port, 0 (a free one) to 65535."""
     value = _count(text)
@@ -746,7 +763,8 @@ def _add_recordings(sub: Any, env_help: str) -> None:
     cal.add_argument(
         "--env", default=None, help=_env_help("or record a calibration run of this env id")
     )
-    cal.add_argument("--seconds", type=float, default=120.0, help="length of that run (s)")
+    cal.add_argument("--seconds", type=_calibration_seconds, default=120.0,
+                     help="length of that run (s)")  # fmt: skip
     cal.add_argument("--world-seed", type=_count, default=0, help="the simulated lab's seed")
     cal.add_argument("--robot", default=None, help="robot preset or YAML, for a bare bag")
     cal.add_argument("--out", required=True, help="the calibration file to write (YAML)")

@@ -291,7 +291,9 @@ def estimate_bag(
             and each failure was logged in one line.
     """
     estimator_spec(estimator)  # an unknown name is refused before any bag is opened
-    uwb = None if calibration is None else load_uwb_calibration(calibration)
+    uwb = (
+        None if calibration is None else load_uwb_calibration(calibration, argument="--calibration")
+    )
     bags = find_bags(bag)
     with executor(ray_address) as jobs:
         run = partial(

@@ -229,9 +229,9 @@ def test_a_failed_calibration_is_refused_and_not_cached(
     says why in one line, and nothing is cached to be read next time."""
     from types import SimpleNamespace
 
-    import agents.calibration_run as calibration_run
+    import tensegrity_gym.envs.calibration_run as calibration_run
 
-    monkeypatch.setenv(calibration_run.CACHE_VARIABLE, str(tmp_path))
+    monkeypatch.setenv("TENSEGRITY_GYM_CACHE", str(tmp_path))
     verdict = "failed: residual spread 400 mm (ranges and geometry disagree)"
     monkeypatch.setattr(
         calibration_run, "record_calibration_run", lambda *a, **k: SimpleNamespace(samples=[])

@@ -4,7 +4,6 @@ the right result, instead of a crash, a traceback or a silent wrong answer."""
 
 from __future__ import annotations
 
-import dataclasses
 import gc
 import json
 import logging
@@ -18,19 +17,14 @@ import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the ids)
 from agents.cli import main
-from hardware.bag.writer import BagWriter
 from tensegrity_gym.model.description import DescriptionError, load_robot
 from tensegrity_gym.model.randomization import Randomization
-from tensegrity_gym.model.samples import UwbRangeSample
-from tensegrity_gym.sim.backend import SimBackend
 from tensegrity_gym.sim.terrain import MAX_SLOPE, Terrain
 from tensegrity_gym.sim.world import MAX_HEIGHTFIELD_POINTS
+from tests.fault_matrix import absurd_ranges, robot_bag
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
     from pathlib import Path
-
-    from tensegrity_gym.model.samples import Sample
 
 ENV = "tensegrity_gym/ThreeBarRoll-v0"
 
@@ -173,49 +167,20 @@ def test_a_broken_description_yaml_is_one_line(tmp_path: Path) -> None:
 # ---------------------------------------------------------------------- bags
 
 
-def _bag(
-    path: Path, *, commands: bool = True, edit: Callable[[Sample], Sample] | None = None
-) -> Path:
-    """A 3-bar bag of 25 periods at rest, with ground truth; ``edit`` changes samples."""
-    d = load_robot("three_bar")
-    sim = SimBackend(d)
-    result = sim.reset(np.random.default_rng(1))
-    hold = d.rest_lengths[d.actuated]
-    change = edit or (lambda s: s)
-    with BagWriter(path, d, sim.calibration, {"control_period": 0.1}, flush_period=0.2) as writer:
-        writer.write_samples([change(s) for s in result.samples])
-        writer.write_truth(sim.ground_truth())  # type: ignore[arg-type]
-        for _ in range(25):
-            if commands:
-                writer.write_command(max(s.t for s in result.samples), hold)
-            result = sim.step(hold)
-            writer.write_samples([change(s) for s in result.samples])
-            writer.write_truth(sim.ground_truth())  # type: ignore[arg-type]
-    sim.close()
-    return path
-
-
 def test_a_bag_without_commands_names_the_missing_topic(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    bag = _bag(tmp_path / "no_commands", commands=False)
+    bag = robot_bag(tmp_path / "no_commands", commands=False)
     code, error = run_cli(["estimate", str(bag), "--out", str(tmp_path / "e"), "--no-progress"],
                           caplog)  # fmt: skip
     assert code == 2
     assert "no /commands/rest_length_targets messages" in error, error
 
 
-def _absurd_ranges(sample: Sample) -> Sample:
-    if not isinstance(sample, UwbRangeSample):
-        return sample
-    ranges = np.where(np.arange(len(sample.ranges)) % 2, -50.0, 1e4)
-    return dataclasses.replace(sample, ranges=ranges)
-
-
 def test_absurd_uwb_ranges_are_counted_as_rejected(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    bag = _bag(tmp_path / "absurd", edit=_absurd_ranges)
+    bag = robot_bag(tmp_path / "absurd", edit=absurd_ranges)
     out = tmp_path / "e"
     code, error = run_cli(["estimate", str(bag), "--out", str(out), "--no-progress"], caplog)
     assert code == 0, error
@@ -223,7 +188,7 @@ def test_absurd_uwb_ranges_are_counted_as_rejected(
     rejected = metrics["estimator_rejected"]
     assert rejected.get("uwb_range_negative", 0) > 0, rejected
     assert rejected.get("uwb_range_too_long", 0) > 0, rejected
-    clean = _bag(tmp_path / "clean")
+    clean = robot_bag(tmp_path / "clean")
     code, _ = run_cli(["estimate", str(clean), "--out", str(tmp_path / "c"), "--no-progress"],
                       caplog)  # fmt: skip
     assert code == 0

@@ -7,15 +7,22 @@ uncorrected ranges of a robot moving about, without any anchor measured by hand.
 a verdict) that :meth:`~CalibrationResult.to_calibration` turns into a
 ``SensorCalibration``. :func:`check_calibration` tells, from later ranges, whether a
 calibration still fits (an anchor moved since). :func:`save_calibration` and
-:func:`load_calibration` keep one in YAML.
+:func:`load_calibration` keep one in YAML; :mod:`~estimation.uwb_calibration.trust`
+tells whether a saved one may be used for a scene and its ranges.
 """
 
 from estimation.uwb_calibration.calibrate import calibrate_ranges, calibrate_samples
-from estimation.uwb_calibration.check import CalibrationCheck, check_calibration, check_samples
+from estimation.uwb_calibration.check import (
+    CalibrationCheck,
+    check_calibration,
+    check_samples,
+    fit_residuals,
+)
 from estimation.uwb_calibration.config import CalibrationConfig
 from estimation.uwb_calibration.files import (
     CalibrationFile,
     CalibrationFileError,
+    check_output_path,
     load_calibration,
     save_calibration,
 )
@@ -33,7 +40,9 @@ __all__ = [
     "calibrate_ranges",
     "calibrate_samples",
     "check_calibration",
+    "check_output_path",
     "check_samples",
+    "fit_residuals",
     "load_calibration",
     "rigid_alignment_rms",
     "save_calibration",

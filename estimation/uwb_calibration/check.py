@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import UwbRangeSample
 
-__all__ = ["CalibrationCheck", "check_calibration", "check_samples"]
+__all__ = ["CalibrationCheck", "check_calibration", "check_samples", "fit_residuals"]
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,52 @@ def _pair_offsets(offsets: NDArray[np.float64], n: int, n_anchors: int) -> NDArr
     return np.concatenate([offsets[n:, :n].ravel(), offsets[:n, :n][iu]])
 
 
+def _fitted_positions(
+    table: RangeTable,
+    rounds: NDArray[np.intp],
+    description: RobotDescription,
+    anchors: NDArray[np.float64],
+    offsets: NDArray[np.float64],
+    config: CalibrationConfig,
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Module positions fitted to ``table``'s ranges in ``rounds`` (and to the robot's
+    shape and the floor) with ``anchors`` (A, 3) m and the pair ``offsets`` (m) held:
+    the (S, n) position index of each (sample, module), -1 where it does not count, and
+    the positions (V, 3) m."""
+    n, A = table.n_nodes, table.n_anchors
+    valid = table.valid_modules(config.min_anchor_ranges)
+    asm = assemble(table, rounds, valid, description, np.zeros((A, 3), dtype=bool), config)
+    p = replace(asm.problem, hold_offsets=True)
+    state = JointState(anchors, offsets, float(np.mean(offsets)),
+                       start_positions(p, anchors, offsets[: A * n]))  # fmt: skip
+    for _ in range(config.floor_passes):
+        p = with_contacts(p, state, config.floor_slab)
+        state = solve_positions(p, state, "cauchy", config.loss_scale)
+    return asm.slot, state.positions
+
+
+def _residuals_at(
+    table: RangeTable,
+    rounds: NDArray[np.intp],
+    fitted: tuple[NDArray[np.intp], NDArray[np.float64]],
+    anchors: NDArray[np.float64],
+    offsets: NDArray[np.float64],
+    rows: NDArray[np.bool_],
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Measured less modelled range (m) of the robot-anchor ``rows`` (k,) of ``table``
+    in ``rounds`` whose module has a ``fitted`` position (:func:`_fitted_positions`),
+    and the anchor of each."""
+    slot, positions = fitted
+    sample_of = np.full(table.n_rounds, -1, dtype=np.intp)
+    sample_of[rounds] = np.arange(len(rounds))
+    mine = rows & (sample_of[table.a_round] >= 0)
+    at = slot[sample_of[table.a_round[mine]], table.a_module[mine]]
+    seen = at >= 0
+    a, j = table.a_anchor[mine][seen], table.a_module[mine][seen]
+    model = np.linalg.norm(anchors[a] - positions[at[seen]], axis=1)
+    return np.asarray(table.a_range[mine][seen] - model - offsets[a * table.n_nodes + j]), a
+
+
 def _left_out(
     table: RangeTable,
     rounds: NDArray[np.intp],
@@ -68,25 +114,36 @@ def _left_out(
     the ranges of the other anchors but the flagged ones (and to the robot's shape and
     the floor) alone; ``calibration``: anchors, pair offsets, flagged anchors."""
     anchors, offsets, flagged = calibration
-    n, A = table.n_nodes, table.n_anchors
     left = np.isin(table.a_anchor, (anchor, *flagged))
     others = table.subset(~left, np.ones(len(table.r_range), dtype=bool))
-    valid = others.valid_modules(config.min_anchor_ranges)
-    asm = assemble(others, rounds, valid, description, np.zeros((A, 3), dtype=bool), config)
-    p = replace(asm.problem, hold_offsets=True)
-    state = JointState(anchors, offsets, float(np.mean(offsets)),
-                       start_positions(p, anchors, offsets[: A * n]))  # fmt: skip
-    for _ in range(config.floor_passes):
-        p = with_contacts(p, state, config.floor_slab)
-        state = solve_positions(p, state, "cauchy", config.loss_scale)
-    sample_of = np.full(table.n_rounds, -1, dtype=np.intp)
-    sample_of[rounds] = np.arange(len(rounds))
-    mine = (table.a_anchor == anchor) & (sample_of[table.a_round] >= 0)
-    slot = asm.slot[sample_of[table.a_round[mine]], table.a_module[mine]]
-    seen = slot >= 0
-    j, m = table.a_module[mine][seen], table.a_range[mine][seen]
-    model = np.linalg.norm(anchors[anchor] - state.positions[slot[seen]], axis=1)
-    return np.asarray(m - model - offsets[anchor * n + j])
+    fitted = _fitted_positions(others, rounds, description, anchors, offsets, config)
+    return _residuals_at(table, rounds, fitted, anchors, offsets, table.a_anchor == anchor)[0]
+
+
+def fit_residuals(
+    calibration: SensorCalibration | CalibrationResult,
+    samples: Iterable[UwbRangeSample],
+    description: RobotDescription,
+    *,
+    config: CalibrationConfig | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """Residuals (m), (k,), of every robot-anchor range of ``samples`` at module
+    positions fitted to all of them (and to the robot's shape and the floor) with
+    ``calibration``'s anchors and offsets held, and the anchor (k,) of each: how well
+    the calibration explains these ranges. Empty where no sample has a module that
+    ranged ``config.min_anchor_ranges`` anchors."""
+    config = config or CalibrationConfig()
+    t, i, j, ranges, index = sample_rows(samples)
+    table = _table(t, i, j, ranges, description, config, index)
+    usable = np.flatnonzero(table.valid_modules(config.min_anchor_ranges).any(axis=1))
+    if len(usable) == 0:
+        return np.zeros(0), np.zeros(0, dtype=np.intp)
+    anchors = np.asarray(calibration.anchors, dtype=np.float64)
+    offsets = _pair_offsets(_offsets_of(calibration), table.n_nodes, table.n_anchors)
+    with single_threaded_blas():
+        fitted = _fitted_positions(table, usable, description, anchors, offsets, config)
+    every = np.ones(len(table.a_range), dtype=bool)
+    return _residuals_at(table, usable, fitted, anchors, offsets, every)
 
 
 def check_calibration(

@@ -14,11 +14,17 @@ The file (``version: 1``)::
       verdict: good
       ...
 
-A bad file is one ``CalibrationFileError`` line naming the file and the field.
+A bad file is one ``CalibrationFileError`` line naming the file and the field; a file
+that is no calibration at all (binary, not a YAML mapping, no ``version``) says so.
+:func:`save_calibration` writes a sibling ``.part`` file and renames it over the
+target, so that a reader never sees half a file and a failure leaves nothing behind;
+:func:`check_output_path` finds what would stop the write before a long calibration.
 """
 
 from __future__ import annotations
 
+import os
+import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -30,14 +36,13 @@ from estimation.uwb_calibration.result import CalibrationResult, ResidualStats
 from tensegrity_gym.model.protocols import SensorCalibration
 
 if TYPE_CHECKING:
-    import os
-
     from numpy.typing import NDArray
 
 __all__ = [
     "VERSION",
     "CalibrationFile",
     "CalibrationFileError",
+    "check_output_path",
     "load_calibration",
     "save_calibration",
 ]
@@ -47,7 +52,11 @@ _STATS = ("count", "median", "spread", "rms", "outlier_fraction", "drift")
 
 
 class CalibrationFileError(ValueError):
-    """A calibration file is missing, not YAML, or malformed; names the file and field."""
+    """A calibration file is missing, not a calibration file, malformed, or cannot be
+    written where asked; one line naming the file (and the field)."""
+
+
+_FORMAT = "a calibration file is YAML from tensegrity-gym calibrate"
 
 
 @dataclass(frozen=True)
@@ -103,7 +112,12 @@ def save_calibration(
     robot: str = "",
 ) -> None:
     """Write ``calibration`` to ``path`` (YAML): a calibrator's result with its verdict
-    and residuals, or a :class:`SensorCalibration` with its camera."""
+    and residuals, or a :class:`SensorCalibration` with its camera. The file appears
+    whole or not at all (a ``.part`` sibling renamed over it; removed on any failure).
+
+    Raises:
+        CalibrationFileError: ``path`` cannot be written; one line naming it.
+    """
     doc: dict[str, Any] = {"version": VERSION, "robot": robot}
     if isinstance(calibration, CalibrationResult):
         doc["frame"] = calibration.frame
@@ -116,7 +130,47 @@ def save_calibration(
         doc["offsets"] = _matrix(calibration.uwb_offsets)
         camera = (calibration.camera_intrinsics, calibration.camera_pose)
         doc["camera"] = {"intrinsics": _matrix(camera[0]), "pose": _matrix(camera[1])}
-    Path(path).write_text(yaml.safe_dump(doc, sort_keys=False, width=120))
+    text = yaml.safe_dump(doc, sort_keys=False, width=120)
+    target = Path(path)
+    # Unique per writer: two processes calibrating the same world at once each rename
+    # their own whole file, and either one is the result.
+    part = target.with_name(f"{target.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.part")
+    try:
+        part.write_text(text)
+        os.replace(part, target)
+    except OSError as e:
+        raise CalibrationFileError(f"{target}: cannot write: {e.strerror or e}") from None
+    finally:
+        part.unlink(missing_ok=True)
+
+
+def check_output_path(
+    path: str | os.PathLike[str], argument: str, *, writable: bool = True
+) -> Path:
+    """``path`` as a :class:`Path` where a calibration file can be written, checked
+    before any calibration is made: not a folder, no file where a folder of its path
+    should be, and (``writable``) the nearest existing folder writable (the missing
+    ones are made when the file is written).
+
+    Args:
+        argument: how the path was given (``"--out"``, ``"calibration cache"``), for
+            the message.
+
+    Raises:
+        CalibrationFileError: one line naming ``argument``, the path and what is wrong.
+    """
+    target = Path(path)
+    where = f"{argument} {str(path)!r}"
+    if target.is_dir():
+        raise CalibrationFileError(f"{where} is a folder, not a file")
+    folder = target.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise CalibrationFileError(f"{where}: {folder} is a file, not a folder")
+    if writable and not os.access(folder, os.W_OK | os.X_OK):
+        raise CalibrationFileError(f"{where}: the folder {folder} is not writable")
+    return target
 
 
 class _Reader:
@@ -212,20 +266,38 @@ def _result(
     )
 
 
-def load_calibration(path: str | os.PathLike[str]) -> CalibrationFile:
+def load_calibration(
+    path: str | os.PathLike[str], *, argument: str | None = None
+) -> CalibrationFile:
     """Read a calibration written by :func:`save_calibration`.
 
+    Args:
+        argument: how the path was given (``"calibration"``, ``"make: calibration"``);
+            errors then start ``argument='path'`` instead of the path alone.
+
     Raises:
-        CalibrationFileError: the file is missing, not YAML, of another version, or a
-            field is missing, unknown or malformed; one line naming file and field.
+        CalibrationFileError: the file is missing, not a calibration file (binary, not
+            YAML, not a YAML mapping, no ``version``), of another version, or a field
+            is missing, unknown or malformed; one line naming file and field.
     """
-    source = str(path)
+    source = str(path) if argument is None else f"{argument}={str(path)!r}"
     try:
-        doc = yaml.safe_load(Path(path).read_text())
+        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
     except OSError as e:
         raise CalibrationFileError(f"{source}: cannot read: {e.strerror or e}") from None
+    except UnicodeDecodeError as e:
+        raise CalibrationFileError(
+            f"{source}: not a calibration file: binary (byte {e.object[e.start]:#04x} at "
+            f"offset {e.start} is not UTF-8 text); {_FORMAT}"
+        ) from None
     except yaml.YAMLError as e:
-        raise CalibrationFileError(f"{source}: not YAML: {str(e).splitlines()[0]}") from None
+        raise CalibrationFileError(
+            f"{source}: not YAML ({str(e).splitlines()[0]}); {_FORMAT}"
+        ) from None
+    if not isinstance(doc, dict) or "version" not in doc:
+        got = "no 'version' field" if isinstance(doc, dict) else (
+            "empty" if doc is None else f"a YAML {type(doc).__name__}, not a mapping")  # fmt: skip
+        raise CalibrationFileError(f"{source}: not a calibration file: {got}; {_FORMAT}")
     r = _Reader(source)
     d = r.mapping(
         doc, "", {"version", "robot", "frame", "anchors", "offsets"}, {"camera", "result"}
