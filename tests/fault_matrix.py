@@ -137,6 +137,12 @@ def make_inputs(folder: Path) -> Path:
     heights = np.random.default_rng(0).random((20, 20))
     _height_map(folder, "scaled_1e6", heights, height_scale=1e6)
     _height_map(folder, "nan_origin", heights * 0.01, origin=[float("nan"), float("nan")])
+    for lab in ("ours", "theirs"):  # a lab's link credentials, and another lab's
+        subprocess.run(
+            [sys.executable, str(ROOT / "scripts" / "make_link_certs.py"), str(folder / lab),
+             "--host", "127.0.0.1", "--user", "env"],
+            check=True, capture_output=True,
+        )  # fmt: skip
     (folder / "broken.yaml").write_text("name: x\nrods: [\n  - {a: 1\n")
     (folder / "binary.yaml").write_bytes(bytes(range(256))[::-1] * 4)
     return folder
@@ -145,7 +151,14 @@ def make_inputs(folder: Path) -> Path:
 # ---------------------------------------------------------------------- rows
 
 ENV = "tensegrity_gym/ThreeBarRoll-v0"
+HW = "tensegrity_gym/ThreeBarRollHardware-v0"
 _MAKE = f"import gymnasium as gym, tensegrity_gym\nenv = gym.make({ENV!r}"
+_EMULATOR = (
+    "import gymnasium as gym, tensegrity_gym\nfrom hardware.link.process import EmulatorProcess\n"
+    "from hardware.link.wire import LinkError\nemu = EmulatorProcess('three_bar'"
+)
+"""A snippet's start: an emulated 3-bar robot ``emu``; the row closes the call (``)``
+or ``, security=...)``) and starts it."""
 
 FAULTS: tuple[Fault, ...] = (
     # -- issue 39: crashes and hangs
@@ -209,7 +222,32 @@ FAULTS: tuple[Fault, ...] = (
           "    assert not pybullet.getConnectionInfo(clients[-1])['isConnected']\n"
           "print(f'connected {sum(pybullet.getConnectionInfo(c)[\"isConnected\"] for c in "
           "set(clients))} of 20')"),
+    # -- issue 39: the robot link
+    Fault("a script that never closes its env after a failed reset", "ok",
+          r"^LinkError: robot at .*prefix=wrong: no /tensegrity/calibration message within 5 s",
+          timeout=40.0,
+          code=f"{_EMULATOR}).start()\n"
+          f"env = gym.make({HW!r}, driver=emu.address + '?prefix=wrong')\n"
+          "try:\n    env.reset(seed=0)\nexcept LinkError as err:\n"
+          "    print(f'LinkError: {err}')\n"),
+    Fault("another lab's certificate", "api",
+          r"^LinkError: could not reach the robot at zenoh/tls/127\.0\.0\.1:\d+\?security=.*"
+          r"theirs/env\.yaml within 5 s: .*refused them", timeout=60.0,
+          code=f"{_EMULATOR}, security=INPUTS + '/ours/robot.yaml').start()\n"
+          f"env = gym.make({HW!r}, driver=emu.address + '?security=' + INPUTS + "
+          "'/theirs/env.yaml')\nenv.reset(seed=0)"),
+    Fault("a tls endpoint without a security file", "api",
+          r"^ValueError: .*a tls/ endpoint needs security=FILE", timeout=30.0,
+          code=f"import gymnasium as gym, tensegrity_gym\n"
+          f"gym.make({HW!r}, driver='zenoh/tls/127.0.0.1:7447')"),
+    Fault("emulate --duration nan", "cli", r"--duration nan must be a finite number",
+          argv=("emulate", "--duration", "nan")),
     # -- the matrix before issue 39
+    Fault("the robot dies mid-episode", "api", r"^LinkError: .*no sensor message",
+          since="earlier", timeout=60.0,
+          code=f"{_EMULATOR}).start()\nenv = gym.make({HW!r}, driver=emu.address)\n"
+          "env.reset(seed=0)\n"
+          "emu.kill()\nfor _ in range(100):\n    env.step(env.action_space.sample())"),
     Fault("a NaN action", "api", r"^ValueError: .*action.*finite", since="earlier",
           code=f"import numpy as np\n{_MAKE})\nenv.reset(seed=0)\n"
           "env.step(np.full(env.action_space.shape, np.nan))"),

@@ -162,6 +162,27 @@ def test_a_cache_with_its_offsets_shifted_is_recalibrated_and_says_so(
     np.testing.assert_array_equal(load_calibration(cache).offsets, file.offsets)  # rewritten
 
 
+def test_a_shifted_cache_cannot_widen_its_own_allowance(
+    cache: Path,
+    honest: Path,
+    recalibrations: list[int],
+    three_bar: RobotDescription,
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The allowance comes from the file's own statistics: an edited spread (infinite)
+    counts for at most OWN_RESIDUAL_MOST times the ranging noise."""
+    n = three_bar.n_nodes
+    honest_file = load_calibration(honest)
+    assert honest_file.result is not None
+    offsets = honest_file.offsets.copy()
+    offsets[n:, :n] += 5.0
+    offsets[:n, n:] += 5.0
+    stats = tuple(replace(s, spread=math.inf) for s in honest_file.result.anchor_stats)
+    _cache_with(cache, honest, offsets=offsets, anchor_stats=stats)
+    _, warning = _recalibrated(three_bar, caplog, recalibrations)
+    assert "at most 240 mm allowed" in warning, warning
+
+
 @pytest.mark.parametrize(
     ("move", "reason"),
     [

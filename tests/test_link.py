@@ -554,6 +554,68 @@ def test_stop_command_holds_the_present_rest_lengths(emulator: EmulatorProcess) 
     listener.close()
 
 
+EXITS_WITHOUT_CLOSE = """
+import json
+import sys
+
+import numpy as np
+
+from hardware.link import ZenohDriver
+from tensegrity_gym.model.description import load_robot
+
+robot = load_robot("three_bar")
+driver = ZenohDriver(robot, sys.argv[1])
+driver.reset(np.random.default_rng(0))
+for _ in range(3):
+    driver.step(robot.motor_limits[1])  # toward the longest: the motors lag the command
+print(json.dumps([driver.session_id, driver._encoders.tolist()]), flush=True)
+"""
+"""Falls off its end mid-motion: no close(), no stop of its own."""
+
+
+def test_the_interpreter_exiting_sends_a_stop_command(emulator: EmulatorProcess) -> None:
+    import json
+    import subprocess
+    import sys
+
+    import zenoh
+
+    from hardware.link.ownership import frame_id_of
+    from hardware.link.wire import COMMAND_TOPIC, open_session
+
+    codec = RobotCodec(THREE_BAR)
+    commands: list[tuple[str | None, NDArray[np.float64]]] = []
+    listener = open_session(LinkAddress.parse(emulator.address), listen=False, timeout=5.0)
+    sub = listener.declare_subscriber(
+        COMMAND_TOPIC.lstrip("/"),
+        lambda s: commands.append(
+            (
+                frame_id_of(s.payload.to_bytes()),
+                codec.decode_joint_state(s.payload.to_bytes(), "actuated")[1],
+            )
+        ),
+        allowed_origin=zenoh.Locality.ANY,
+    )
+    try:
+        run = subprocess.run(
+            [sys.executable, "-c", EXITS_WITHOUT_CLOSE, emulator.address],
+            capture_output=True,
+            text=True,
+            timeout=60.0,
+        )
+        assert run.returncode == 0, run.stderr
+        session, encoders = json.loads(run.stdout)
+        _wait_until(lambda: len([c for c in commands if c[0] == session]) >= 2)
+    finally:
+        sub.undeclare()
+        listener.close()
+    theirs = [values for who, values in commands if who == session]
+    # The last command holds the motors where the encoders last were, not where the
+    # last step was taking them.
+    np.testing.assert_allclose(theirs[-1], encoders, atol=1e-12)
+    assert not np.allclose(theirs[-2], encoders)
+
+
 def test_network_faults_are_sorted_counted_and_never_reach_the_policy_as_nan() -> None:
     options = ["--latency", "0.01", "--jitter", "0.03", "--reorder", "0.2", "--loss", "0.05"]
     options += ["--dropout-rate", "0.5", "--dropout-duration", "0.3", "--seed", "3"]
@@ -643,15 +705,20 @@ def test_the_record_command_runs_a_policy_on_the_robot(
     assert 4 <= len(run.steps) <= 5 and run.description.name == "three_bar"
 
 
-def test_a_robot_node_written_with_zenoh_and_rosbags_alone_is_driven(tmp_path: Any) -> None:
+def test_a_robot_node_written_with_zenoh_and_rosbags_alone_is_driven(
+    tmp_path: Any, caplog: pytest.LogCaptureFixture
+) -> None:
     """The README's promise: a lab's own robot node (examples/robot_node_with_zenoh.py)
-    speaks the wire; the env drives it and the UKF places it."""
+    speaks the wire; the env drives it and the UKF places it. It obeys that env only: a
+    foreign publisher's commands move no motor, and are logged."""
+    import logging
     import runpy
     import threading
     from pathlib import Path
 
     from hardware.link.process import free_port
     from tensegrity_gym.model.kinematics import center_of_mass
+    from tests.test_link_security import _foreign_publisher
 
     example = Path(__file__).parents[1] / "examples" / "robot_node_with_zenoh.py"
     serve = runpy.run_path(str(example), run_name="example")["serve"]
@@ -659,16 +726,26 @@ def test_a_robot_node_written_with_zenoh_and_rosbags_alone_is_driven(tmp_path: A
     robot = threading.Thread(target=serve, args=(f"tcp/127.0.0.1:{port}", 15.0), daemon=True)
     robot.start()
     env = gym.make(HW_ID, driver=f"zenoh/tcp/127.0.0.1:{port}", estimator="ukf")
+    foreign = None
     try:
         _, info = env.reset(seed=0)
         assert info["robot_settled"]
-        for _ in range(10):
-            obs, _, _, _, info = env.step(np.zeros(6, np.float32))
-            assert np.all(np.isfinite(obs)) and not info["link_stalled"]
+        with caplog.at_level(logging.INFO, logger="robot_node"):
+            foreign, stop = _foreign_publisher(f"zenoh/tcp/127.0.0.1:{port}", "intruder")
+            for _ in range(10):
+                obs, _, _, _, info = env.step(np.zeros(6, np.float32))
+                assert np.all(np.isfinite(obs)) and not info["link_stalled"]
+            stop.set()
         driver = cast("ZenohDriver", cast("TensegrityEnv", env.unwrapped).backend)
         np.testing.assert_allclose(driver._encoders, driver.limiter.previous, atol=1e-9)
     finally:
         env.close()
+        if foreign is not None:
+            foreign.close()
+    refusals = " ".join(r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
+    assert "refused a command from (no session)" in refusals, refusals
+    assert "refused a command from intruder" in refusals, refusals
+    assert "refused a heartbeat from intruder" in refusals, refusals
     nominal = center_of_mass(THREE_BAR.initial_positions, THREE_BAR.node_masses)
     assert np.linalg.norm(info["com_estimate"] - nominal) < 0.05
 

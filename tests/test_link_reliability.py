@@ -1,6 +1,7 @@
 """Robot link reliability (issue 12): a reset waits until the estimator can initialise,
 a suspended env process drains before it judges the link, and a silent listener cannot
-hold the connect past its timeout. The emulators run on free loopback ports."""
+hold the connect past its timeout; (issue 39) a script that never closes its env after
+a failed reset still exits. The emulators run on free loopback ports."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import os
 import signal
 import socket
 import subprocess
+import sys
 import threading
 import time
 from typing import TYPE_CHECKING
@@ -248,3 +250,70 @@ def test_encoder_readings_outside_the_motor_range_are_counted() -> None:
     assert THREE_BAR.outside_motor_range(np.full(THREE_BAR.n_actuated, 2.0)) == 6
     assert THREE_BAR.outside_motor_range(hi + 0.5 * THREE_BAR.sensors.encoder.resolution) == 0
     driver.close()
+
+
+# ---------------------------------------------------------------------- exit
+
+UNCLOSED_AFTER_A_FAILED_RESET = """
+import sys
+
+import gymnasium as gym
+
+import tensegrity_gym  # noqa: F401
+from hardware.link import LinkError
+
+env = gym.make("tensegrity_gym/ThreeBarRollHardware-v0", driver=sys.argv[1])
+try:
+    env.reset(seed=0)
+except LinkError as err:
+    print(err, file=sys.stderr)
+"""
+"""A user's script that falls off its end without ``env.close()``."""
+
+
+def test_a_script_that_never_closes_its_env_after_a_failed_reset_exits(
+    emulator: EmulatorProcess,
+) -> None:
+    """Zenoh ran the subscriber's callback on a non-daemon Python thread that lives
+    until the session closes, and Python waits for such threads before it runs the
+    atexit hook that would close it: the script hung forever after printing the error."""
+    address = emulator.address + "?prefix=wrong"  # nothing the robot publishes arrives
+    bound = 20.0  # s: imports and the 5 s wait for the robot's calibration, with margin
+    t = time.monotonic()
+    try:
+        run = subprocess.run(
+            [sys.executable, "-c", UNCLOSED_AFTER_A_FAILED_RESET, address],
+            capture_output=True,
+            text=True,
+            timeout=bound,
+        )
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"the script did not exit within {bound:g} s of starting: it hangs")
+    took = time.monotonic() - t
+    expected = (
+        f"robot at {address}: no /tensegrity/calibration message within 5 s (0 messages received)"
+    )
+    assert run.returncode == 0, run.stderr
+    assert expected in run.stderr.splitlines(), run.stderr
+    assert "Traceback" not in run.stderr, run.stderr
+    assert took < bound
+
+
+def _exit_at_once() -> None:
+    """A forked worker's body: nothing; its exit runs the inherited exit hooks."""
+
+
+def test_a_forked_worker_exiting_leaves_the_parents_link_alone(
+    stepping: ZenohDriver,
+) -> None:
+    """A forked child inherits the open drivers but not their links: its exit must not
+    close them (or send stop commands through sessions it cannot use)."""
+    import multiprocessing
+
+    child = multiprocessing.get_context("fork").Process(target=_exit_at_once)
+    child.start()
+    child.join(timeout=20.0)
+    assert child.exitcode == 0
+    for _ in range(3):
+        result = stepping.step(NOMINAL)
+        assert result.samples and not result.info["link_stalled"]

@@ -34,6 +34,7 @@ __all__ = [
     "FIT_MIN_RANGES",
     "FIT_RATIO",
     "LAYOUT_TOLERANCE",
+    "OWN_RESIDUAL_MOST",
     "RangeFit",
     "range_fit",
     "scene_mismatch",
@@ -53,6 +54,11 @@ than the ranging noise. Honest cached calibrations gave 25-35 mm on 3 s of new r
 (1.0-1.2 times their own; 3-bar worlds 0-4, 1.45 m 3-bar and SUPERball worlds 0-2,
 four draws of the ranges each): a margin of 1.7 under the 60 mm this allows. Offsets
 10 cm off gave 2-5 times the allowance, offsets 5 m off 90-170 times."""
+OWN_RESIDUAL_MOST = 4.0
+"""An anchor's own residuals count for at most this many times ``range_sigma`` (12 cm)
+in its allowance: the statistics are read from the file being checked, and a file
+whose stored spread is edited (infinite, or metres) must not widen the check at will.
+Honest calibrations store 1-2 times the ranging noise."""
 FIT_MIN_RANGES = 10
 """Ranges an anchor needs in the new ranges for its residuals to count."""
 _ROBUST = 1.4826  # median |x| of a zero-mean normal times this is its standard deviation
@@ -127,13 +133,15 @@ def _own_residuals(
     calibration: CalibrationFile | CalibrationResult, n_anchors: int, config: CalibrationConfig
 ) -> NDArray[np.float64]:
     """(A,) m: each anchor's residuals in the calibration (hypot of its median and
-    spread), never under ``config.range_sigma``; the ranging noise where not stored."""
+    spread), never under ``config.range_sigma`` nor over :data:`OWN_RESIDUAL_MOST` times
+    it; the ranging noise where not stored."""
     result = getattr(calibration, "result", calibration)
     stats = getattr(result, "anchor_stats", None)
     if stats is None or len(stats) != n_anchors:
         return np.full(n_anchors, config.range_sigma)
     own = np.array([np.hypot(s.median, s.spread) for s in stats], dtype=np.float64)
-    return np.asarray(np.fmax(own, config.range_sigma))  # fmax: NaN takes the floor
+    own = np.fmax(own, config.range_sigma)  # fmax: NaN takes the floor
+    return np.asarray(np.minimum(own, OWN_RESIDUAL_MOST * config.range_sigma))
 
 
 def range_fit(

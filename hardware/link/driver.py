@@ -16,7 +16,16 @@ quiet for ``timeouts.link_lost`` makes ``step`` send a stop command and raise
 listened: a process that was suspended does not blame the robot for the gap.
 ``close()``, an exception in the env, or the interpreter exiting send a stop command
 (hold the present rest lengths) first. A heartbeat goes out at a fixed rate from its
-own thread; the robot holds its motors when heartbeats stop.
+own thread; the robot holds its motors when heartbeats stop. Commands and heartbeats
+name the driver's session (:attr:`ZenohDriver.session_id`, in their header's
+``frame_id``): the robot obeys only the session that took its motors
+(:mod:`hardware.link.ownership`).
+
+Nothing the driver starts keeps the interpreter alive: the heartbeat thread is a
+daemon, Zenoh calls the subscriber back on its own (non-Python) threads, and the exit
+hook that stops the motors and closes the link runs before Python waits for the
+threads that are left (a Zenoh callback thread of the default kind is one, and waits
+for its session to close).
 
 The robot stamps its messages with its clock (synchronised with this machine's); each
 ``reset`` sets the codec's clock origin (:attr:`ZenohDriver.clock_origin_ns`) to the
@@ -28,9 +37,10 @@ in whole nanoseconds.
 from __future__ import annotations
 
 import atexit
-import functools
+import contextlib
 import logging
 import math
+import os
 import threading
 import time
 import weakref
@@ -43,6 +53,7 @@ import numpy as np
 from hardware.bag import messages as m
 from hardware.bag.assembler import SampleAssembler
 from hardware.bag.codec import MessageError, RobotCodec, description_yaml
+from hardware.link.ownership import NO_SESSION, frame_id_of, new_session_id
 from hardware.link.safety import CommandLimiter, check_fields
 from hardware.link.wire import (
     COMMAND_TOPIC,
@@ -196,10 +207,9 @@ class ZenohDriver:
         self._closed = False
         self.last_heartbeat: float | None = None
         """When the last heartbeat went out: sample time (s from the clock origin)."""
-        # At interpreter exit, stop the motors; a weak reference, so that the hook
-        # does not keep a forgotten driver alive.
-        self._at_exit = functools.partial(_close_at_exit, weakref.ref(self))
-        atexit.register(self._at_exit)
+        self.session_id = new_session_id()
+        """This driver's session, named in every command and heartbeat (``frame_id``)."""
+        _close_at_exit(self)
 
     # ------------------------------------------------------------------ link
 
@@ -225,7 +235,9 @@ class ZenohDriver:
         key = self.address.key
         try:
             self._subscriber = session.declare_subscriber(
-                self.address.everything, self._on_message, allowed_origin=zenoh.Locality.REMOTE
+                self.address.everything,
+                _direct_callback(self._on_message),
+                allowed_origin=zenoh.Locality.REMOTE,
             )
             self._command_pub = session.declare_publisher(key(COMMAND_TOPIC))
             self._heartbeat_pub = session.declare_publisher(key(HEARTBEAT_TOPIC))
@@ -238,6 +250,7 @@ class ZenohDriver:
             target=self._heartbeats, name="tensegrity-heartbeat", daemon=True
         )
         self._heartbeat_thread.start()
+        log.info("robot link: connected to %s as session %s", self.address, self.session_id)
 
     def _on_message(self, sample: Any) -> None:
         # Zenoh's thread: queue the bytes and nothing else.
@@ -273,7 +286,8 @@ class ZenohDriver:
                 continue
             now_ns = time.time_ns()
             sec, nanosec = divmod(now_ns, 1_000_000_000)
-            msg = header_type(stamp=time_type(sec=sec, nanosec=nanosec), frame_id="env")
+            stamp = time_type(sec=sec, nanosec=nanosec)
+            msg = header_type(stamp=stamp, frame_id=self.session_id)
             try:
                 self._heartbeat_pub.put(bytes(self.codec.store.serialize_cdr(msg, HEARTBEAT_TYPE)))
             except Exception:  # the session is closing
@@ -326,14 +340,16 @@ class ZenohDriver:
         topics = self.codec.topics.types
         for key, raw, arrival in batch:
             topic = self.address.topic(key)
+            if topic in (COMMAND_TOPIC, HEARTBEAT_TOPIC):  # not ours: Zenoh sends us none
+                who = frame_id_of(raw) or NO_SESSION
+                self._skip("other_controller", topic, None, f"session {who} commands the robot too")
+                continue
             if topic is None or topic not in topics:
                 self._skip("unknown_topic", key, None, "not in the robot's topic table")
                 continue
             if topic in m.HEADER_TOPICS:
                 self._header[topic] = raw
                 continue
-            if topic in (COMMAND_TOPIC, HEARTBEAT_TOPIC):
-                continue  # another controller on the link
             if self._assembler.add(topic, raw, arrival):  # a sensor is alive
                 heard = self._heard_at(arrival, now, since)
                 self._last_sensor = max(self._last_sensor, heard)
@@ -576,8 +592,15 @@ class ZenohDriver:
     def _send_command(self, targets: NDArray[np.float64]) -> None:
         # Stamped with the wall clock: the sample time of now, which the codec turns back
         # into whole ns of the wall clock exactly.
-        _, raw = self.codec.encode_command(self.codec.seconds(time.time_ns()), targets)
-        self._command_pub.put(raw)
+        codec = self.codec
+        msg = codec.store.types[m.JOINT_STATE](
+            header=codec.header(codec.seconds(time.time_ns()), self.session_id),
+            name=list(codec.actuated_names),
+            position=np.asarray(targets, dtype=np.float64),
+            velocity=np.empty(0),
+            effort=np.empty(0),
+        )
+        self._command_pub.put(codec.serialize(msg, m.JOINT_STATE))
         self._last_activity = time.monotonic()
 
     def stop(self) -> None:
@@ -624,7 +647,7 @@ class ZenohDriver:
         if self._closed:
             return
         self._closed = True
-        atexit.unregister(self._at_exit)
+        _OPEN_DRIVERS.discard(self)
         self.stop()
         self._stop_heartbeat.set()
         if self._heartbeat_thread is not None:
@@ -634,7 +657,61 @@ class ZenohDriver:
             session.close()
 
 
-def _close_at_exit(ref: weakref.ReferenceType[ZenohDriver]) -> None:
-    driver = ref()
-    if driver is not None:
-        driver.close()
+_OPEN_DRIVERS: weakref.WeakSet[ZenohDriver] = weakref.WeakSet()
+"""Drivers not closed yet; weak, so that the exit hook keeps no forgotten driver alive."""
+# A forked child (a multiprocessing worker) inherits the set but not the links: its
+# exit must not close, or send stop commands through, its parent's sessions.
+os.register_at_fork(after_in_child=_OPEN_DRIVERS.clear)
+
+
+def _close_at_exit(driver: ZenohDriver) -> None:
+    """Have ``driver`` closed (stop command first) when the interpreter exits."""
+    _OPEN_DRIVERS.add(driver)
+
+
+_early_hook_lock = threading.Lock()
+_early_hook_registered = False
+
+
+def _close_before_threads_join() -> None:
+    """Close the open drivers before Python waits for non-daemon threads at exit, not
+    after (atexit): where Zenoh runs the link's callback on a Python thread of its own
+    (not a daemon, living until the session closes), that wait would never end. Only
+    then: a driver in use by a user's own worker thread is otherwise left to it."""
+    global _early_hook_registered
+    with _early_hook_lock:
+        if _early_hook_registered:
+            return
+        _early_hook_registered = True
+    register = getattr(threading, "_register_atexit", None)  # private: concurrent.futures'
+    if register is None:
+        log.warning("robot link: no early exit hook; an unclosed driver may keep Python alive")
+        return
+    with contextlib.suppress(RuntimeError):  # the interpreter is already shutting down
+        register(_close_open_drivers)
+
+
+def _close_open_drivers() -> None:
+    for driver in list(_OPEN_DRIVERS):
+        try:
+            driver.close()
+        except Exception as err:  # the next driver still gets its stop command
+            log.warning("robot link: closing %s at exit failed: %s", driver.address, err)
+
+
+atexit.register(_close_open_drivers)
+
+
+def _direct_callback(function: Any) -> Any:
+    """``function`` as a Zenoh callback run on Zenoh's own thread, not on a Python
+    thread of its own: such a thread is not a daemon and lives until the session
+    closes, so a driver never closed would keep the interpreter from exiting. The
+    callback must be quick (it only queues bytes). ``indirect`` is marked unstable in
+    eclipse-zenoh 1.x; without it, the exit hook still closes the session."""
+    from zenoh.handlers import Callback
+
+    try:
+        return Callback(function, indirect=False)
+    except TypeError:
+        _close_before_threads_join()
+        return function

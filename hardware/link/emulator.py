@@ -7,7 +7,11 @@ with the robot's clock (wall-clock time, as a robot synchronised by NTP or PTP s
 Faults (:class:`FaultModel`) act on the sensor messages: latency and jitter, packet
 loss, reordering, and dropouts in which one sensor stream goes quiet for a while.
 Like a robot's firmware, it holds its motors (targets = present rest lengths) before the
-first heartbeat and whenever heartbeats stop for longer than the watchdog timeout.
+first heartbeat and whenever heartbeats stop for longer than the watchdog timeout, and
+it obeys only the session that took its motors (:class:`~hardware.link.ownership.MotorOwner`):
+the commands and heartbeats of another are refused, counted and logged. With a security
+file (``--security``) it listens with TLS and refuses peers without the lab's
+credentials; the command line logs each refusal (:func:`~hardware.link.security.forward_zenoh_log`).
 """
 
 from __future__ import annotations
@@ -16,8 +20,8 @@ import argparse
 import dataclasses
 import heapq
 import logging
+import math
 import signal
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -26,7 +30,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hardware.bag.codec import MessageError, RobotCodec
-from hardware.link.safety import Watchdog, check_fields
+from hardware.link.ownership import MotorOwner, frame_id_of
+from hardware.link.safety import check_fields
+from hardware.link.security import forward_zenoh_log
 from hardware.link.wire import COMMAND_TOPIC, HEARTBEAT_TOPIC, LinkAddress, LinkError, open_session
 from tensegrity_gym.model.samples import seconds_to_ns
 from tensegrity_gym.sim.backend import SimBackend
@@ -37,6 +43,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from hardware.bag.kinds import TopicTable
+    from hardware.link.safety import Watchdog
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.samples import Sample
 
@@ -95,8 +102,14 @@ class EmulatorStats:
     reordered: int = 0
     dropped_in_dropout: int = 0
     commands: int = 0
+    """Commands kept: the owner's, or any session's while nobody owns the motors (those
+    move nothing unless their session takes the motors before the next tick)."""
     bad_commands: int = 0
+    refused_commands: int = 0
+    """Commands of a session that does not own the motors, or of none."""
     heartbeats: int = 0
+    refused_heartbeats: int = 0
+    """Heartbeats of a session that does not own the motors, or of none."""
     watchdog_trips: int = 0
     overruns: int = 0
     """Ticks that started late because the previous one took longer than a tick."""
@@ -157,12 +170,14 @@ class Emulator:
             raise ValueError(f"cannot mute {unknown}: not topics of {description.name}")
         self.muted = frozenset(muted)
         self.stats = EmulatorStats()
-        self.watchdog = Watchdog(watchdog_timeout)
+        self.owner = MotorOwner(watchdog_timeout, log)
+        """Who drives the motors; its watchdog holds them when heartbeats stop."""
         self._rng = np.random.default_rng(seed)
         self._fault_rng = np.random.default_rng([seed, 1])
         self._backend = SimBackend(description, control_period=TICK)
         self._lock = threading.Lock()
         self._command: NDArray[np.float64] | None = None
+        self._command_session: str | None = None  # the session that sent it
         self._fresh_command = False  # a command came since the watchdog last tripped
         self._hold: NDArray[np.float64] | None = None
         self._stop = threading.Event()
@@ -224,8 +239,18 @@ class Emulator:
                 if not self._stop.is_set():
                     raise
 
+    @property
+    def watchdog(self) -> Watchdog:
+        """Fed by the owner's heartbeats; tripped, the motors hold."""
+        return self.owner.watchdog
+
     def _on_command(self, sample: Any) -> None:
         raw = sample.payload.to_bytes()
+        session = frame_id_of(raw)  # who sent it, before anything is decoded
+        if not self.owner.may_command(session, time.monotonic()):
+            with self._lock:
+                self.stats.refused_commands += 1
+            return
         try:
             _, targets = self.codec.decode_joint_state(raw, "actuated")
         except MessageError as err:
@@ -235,13 +260,18 @@ class Emulator:
         lo, hi, _ = self.description.motor_limits
         with self._lock:
             self._command = np.clip(targets, lo, hi)  # firmware limits, whatever is sent
+            self._command_session = session
             self._fresh_command = True
             self.stats.commands += 1
 
-    def _on_heartbeat(self, _sample: Any) -> None:
+    def _on_heartbeat(self, sample: Any) -> None:
+        session = frame_id_of(sample.payload.to_bytes())
+        fed = self.owner.heartbeat(session, time.monotonic())
         with self._lock:
-            self.watchdog.feed(time.monotonic())
-            self.stats.heartbeats += 1
+            if fed:
+                self.stats.heartbeats += 1
+            else:
+                self.stats.refused_heartbeats += 1
 
     # ------------------------------------------------------------------ running
 
@@ -284,6 +314,13 @@ class Emulator:
         before the first heartbeat and after heartbeats stop (until a new command)."""
         with self._lock:
             tripped = self.watchdog.tripped(now)
+            if (
+                self._fresh_command
+                and not tripped
+                and not self.owner.obeys(self._command_session, now)
+            ):
+                # Kept while nobody owned the motors, and another session took them.
+                self._fresh_command = False
             if tripped and self._fresh_command:
                 self._fresh_command = False
                 if self.stats.heartbeats:
@@ -394,6 +431,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--robot", default="three_bar", help="robot preset or YAML")
     parser.add_argument("--listen", default="tcp/127.0.0.1:7447", help="Zenoh endpoint")
     parser.add_argument("--prefix", default="", help="topic namespace (Zenoh key prefix)")
+    parser.add_argument(
+        "--security",
+        default=None,
+        metavar="FILE",
+        help="the robot side's security file (TLS with mutual authentication, users; "
+        "scripts/make_link_certs.py writes one): peers without the credentials are refused",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--latency", type=float, default=0.0, help="seconds added to a message")
     parser.add_argument("--jitter", type=float, default=0.0, help="up to this many seconds more")
@@ -420,39 +464,56 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def emulator_from_args(args: argparse.Namespace) -> Emulator:
+    """The emulator the options of :func:`add_arguments` describe; ValueError or
+    DescriptionError, one line, for a bad one."""
+    from tensegrity_gym.model.description import load_robot
+
+    for flag, value in (("--duration", args.duration), ("--watchdog", args.watchdog)):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise ValueError(f"{flag} {value} must be a finite number of seconds > 0")
+    options = [f"prefix={args.prefix}"] if args.prefix else []
+    options += [f"security={args.security}"] if args.security else []
+    query = "?" + "&".join(options) if options else ""
+    address = LinkAddress.parse(f"zenoh/{args.listen}{query}")
+    description = load_robot(args.robot)
+    if args.imu_rate is not None:
+        if not args.imu_rate > 0:
+            raise ValueError(f"--imu-rate {args.imu_rate} must be positive")
+        s = description.sensors
+        imu = dataclasses.replace(s.imu, rate=float(args.imu_rate))
+        description = dataclasses.replace(description, sensors=dataclasses.replace(s, imu=imu))
+    faults = FaultModel(
+        latency=args.latency,
+        jitter=args.jitter,
+        loss=args.loss,
+        reorder=args.reorder,
+        dropout_rate=args.dropout_rate,
+        dropout_duration=args.dropout_duration,
+    )
+    return Emulator(
+        description,
+        address,
+        faults=faults,
+        seed=args.seed,
+        camera=args.camera,
+        truth=not args.no_truth,
+        watchdog_timeout=args.watchdog,
+        muted=args.mute,
+    )
+
+
 def run_from_args(args: argparse.Namespace) -> int:
     """Serve until SIGINT or SIGTERM (or ``--duration``); print ``ready ADDRESS`` once
-    listening. Returns the process exit status."""
-    from tensegrity_gym.model.description import DescriptionError, load_robot
+    listening. Returns the process exit status.
+
+    Zenoh's log, refused peers included, goes to this process's log: its standard
+    output is taken over for that (:func:`forward_zenoh_log`), so call it only in a
+    process that serves."""
+    from tensegrity_gym.model.description import DescriptionError
 
     try:
-        query = f"?prefix={args.prefix}" if args.prefix else ""
-        address = LinkAddress.parse(f"zenoh/{args.listen}{query}")
-        description = load_robot(args.robot)
-        if args.imu_rate is not None:
-            if not args.imu_rate > 0:
-                raise ValueError(f"--imu-rate {args.imu_rate} must be positive")
-            s = description.sensors
-            imu = dataclasses.replace(s.imu, rate=float(args.imu_rate))
-            description = dataclasses.replace(description, sensors=dataclasses.replace(s, imu=imu))
-        faults = FaultModel(
-            latency=args.latency,
-            jitter=args.jitter,
-            loss=args.loss,
-            reorder=args.reorder,
-            dropout_rate=args.dropout_rate,
-            dropout_duration=args.dropout_duration,
-        )
-        emulator = Emulator(
-            description,
-            address,
-            faults=faults,
-            seed=args.seed,
-            camera=args.camera,
-            truth=not args.no_truth,
-            watchdog_timeout=args.watchdog,
-            muted=args.mute,
-        )
+        emulator = emulator_from_args(args)
     except (ValueError, DescriptionError) as err:
         log.error("%s", err)
         return 2
@@ -463,20 +524,24 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
+    ready_out = forward_zenoh_log(log)
     try:
         emulator.start()
     except LinkError as err:
         log.error("%s", err)
         emulator.close()
         return 1
-    log.info("emulating %s at %s", description.name, address)
-    sys.stdout.write(f"ready {address}\n")
-    sys.stdout.flush()
+    log.info("emulating %s at %s", emulator.description.name, emulator.address)
+    ready_out.write(f"ready {emulator.address}\n")
+    ready_out.flush()
     try:
         emulator.run(args.duration)
     finally:
         emulator.close()
     log.info("emulator stopped: %s", emulator.stats)
+    refused = emulator.owner.counts()["refused_by"]
+    if refused:
+        log.info("emulator: refused messages by session: %s", refused)
     return 0
 
 

@@ -9,8 +9,10 @@ import socket
 import subprocess
 import sys
 import time
-from typing import TYPE_CHECKING
+from pathlib import Path
+from typing import TYPE_CHECKING, BinaryIO
 
+from hardware.link.security import LinkSecurity
 from hardware.link.wire import LinkError
 
 if TYPE_CHECKING:
@@ -35,6 +37,11 @@ class EmulatorProcess:
         port: TCP port to listen on; a free one by default (kept across restarts).
         options: more command-line options (``["--latency", "0.01"]``).
         start_timeout: seconds to wait for the emulator to listen.
+        security: the robot side's security file (``--security``); with a ``tls``
+            section the emulator listens on ``tls/`` (its certificate must name
+            127.0.0.1, as ``scripts/make_link_certs.py``'s do by default).
+        log: a file the emulator's log (its standard error) is appended to; by default
+            it is discarded.
     """
 
     def __init__(
@@ -44,27 +51,44 @@ class EmulatorProcess:
         port: int | None = None,
         options: Sequence[str] = (),
         start_timeout: float = 30.0,
+        security: str | Path | None = None,
+        log: str | Path | None = None,
     ) -> None:
         self.robot = robot
         self.port = port or free_port()
         self.options = list(options)
         self.start_timeout = start_timeout
+        self.security = None if security is None else Path(security)
+        # Checked here, so that a bad file is one line now, not a silent child later.
+        tls = self.security is not None and LinkSecurity.load(self.security).tls
+        self.protocol = "tls" if tls else "tcp"
+        self.log = None if log is None else Path(log)
         self.process: subprocess.Popen[bytes] | None = None
 
     @property
     def address(self) -> str:
-        """The driver address: ``zenoh/tcp/127.0.0.1:PORT``."""
-        return f"zenoh/tcp/127.0.0.1:{self.port}"
+        """The driver address without the env's credentials: ``zenoh/tcp/127.0.0.1:PORT``
+        (``tls/`` with a TLS security file; add ``?security=ENV_FILE``)."""
+        return f"zenoh/{self.protocol}/127.0.0.1:{self.port}"
 
     def start(self) -> EmulatorProcess:
         """Start and wait until it listens; :class:`LinkError` if it does not."""
         if self.process is not None and self.process.poll() is None:
             return self
         args = [sys.executable, "-m", "hardware.link.emulator", "--robot", self.robot]
-        args += ["--listen", f"tcp/127.0.0.1:{self.port}", *self.options]
-        self.process = subprocess.Popen(
-            args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=dict(os.environ)
-        )
+        args += ["--listen", f"{self.protocol}/127.0.0.1:{self.port}", *self.options]
+        if self.security is not None:
+            args += ["--security", str(self.security)]
+        log: BinaryIO | int = subprocess.DEVNULL
+        if self.log is not None:
+            log = self.log.open("ab")  # the child holds its own descriptor
+        try:
+            self.process = subprocess.Popen(
+                args, stdout=subprocess.PIPE, stderr=log, env=dict(os.environ)
+            )
+        finally:
+            if not isinstance(log, int):
+                log.close()
         assert self.process.stdout is not None
         deadline = time.monotonic() + self.start_timeout
         line = b""

@@ -12,7 +12,12 @@ description the env checks; an older robot's YAML on ``/robot_description`` is t
 too), ``/robot_description`` (the URDF, for viewers), ``/tensegrity/calibration`` and
 ``/camera/camera_info`` (republished about once a second, the way a latched topic
 reaches late joiners over the bridge), and optionally ground truth from motion capture.
-Env to robot: ``/commands/rest_length_targets`` and ``/tensegrity/heartbeat``.
+Env to robot: ``/commands/rest_length_targets`` and ``/tensegrity/heartbeat``, both
+naming the env's session in their header's ``frame_id`` (:mod:`hardware.link.ownership`).
+
+Plain TCP carries no encryption and no authentication: anyone who reaches the endpoint
+may publish. ``?security=FILE`` (:mod:`hardware.link.security`) adds TLS with mutual
+authentication and Zenoh's user-password authentication.
 """
 
 from __future__ import annotations
@@ -25,6 +30,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from hardware.bag.messages import COMMAND_TOPIC
+from hardware.link.security import LinkSecurity
 
 if TYPE_CHECKING:
     import zenoh
@@ -48,18 +54,26 @@ class LinkError(RuntimeError):
     """The robot link failed: no connection, no data, or the robot went quiet."""
 
 
+_OPTIONS = ("mode", "prefix", "security")
+
+
 @dataclass(frozen=True)
 class LinkAddress:
-    """Where the robot is: a Zenoh endpoint, the session mode and the topic prefix.
+    """Where the robot is: a Zenoh endpoint, the session mode, the topic prefix and the
+    credentials.
 
-    Written ``zenoh/ENDPOINT[?mode=client|peer&prefix=NAME]``, for example
-    ``zenoh/tcp/127.0.0.1:7447`` or ``zenoh/tcp/robot.local:7447?prefix=lab1``.
+    Written ``zenoh/ENDPOINT[?mode=client|peer&prefix=NAME&security=FILE]``, for example
+    ``zenoh/tcp/127.0.0.1:7447``, ``zenoh/tcp/robot.local:7447?prefix=lab1`` or
+    ``zenoh/tls/robot.local:7447?security=lab/env.yaml`` (a security file, see
+    :mod:`hardware.link.security`; a ``tls/`` endpoint needs one with a ``tls`` section).
     """
 
     endpoint: str
     """A Zenoh locator, ``tcp/HOST:PORT``."""
     mode: str = "client"
     prefix: str = ""
+    security: LinkSecurity | None = None
+    """This side's credentials; None: no encryption, no authentication (loopback)."""
 
     @classmethod
     def parse(cls, text: str) -> LinkAddress:
@@ -76,10 +90,10 @@ class LinkAddress:
         options: dict[str, str] = {}
         for item in filter(None, query.split("&")):
             key, eq, value = item.partition("=")
-            if not eq or key not in ("mode", "prefix"):
+            if not eq or key not in _OPTIONS:
                 raise ValueError(
-                    f"robot address {text!r}: option {item!r}; valid options are mode=client|peer "
-                    "and prefix=NAME"
+                    f"robot address {text!r}: option {item!r}; valid options are mode=client|peer, "
+                    "prefix=NAME and security=FILE"
                 )
             options[key] = value
         mode = options.get("mode", "client")
@@ -88,7 +102,8 @@ class LinkAddress:
         prefix = options.get("prefix", "").strip("/")
         if prefix and not re.fullmatch(r"[A-Za-z0-9_\-/]+", prefix):
             raise ValueError(f"robot address {text!r}: prefix {prefix!r} has invalid characters")
-        return cls(rest, mode, prefix)
+        security = _security(text, rest, options.get("security"))
+        return cls(rest, mode, prefix, security)
 
     def __str__(self) -> str:
         options = []
@@ -96,6 +111,8 @@ class LinkAddress:
             options.append(f"mode={self.mode}")
         if self.prefix:
             options.append(f"prefix={self.prefix}")
+        if self.security is not None:
+            options.append(f"security={self.security.source}")
         return f"zenoh/{self.endpoint}" + ("?" + "&".join(options) if options else "")
 
     def key(self, topic: str) -> str:
@@ -117,6 +134,31 @@ class LinkAddress:
         return f"{self.prefix}/**" if self.prefix else "**"
 
 
+def _security(text: str, endpoint: str, path: str | None) -> LinkSecurity | None:
+    """The address's security file, loaded and checked; ValueError naming the option
+    and the file when it is unusable or does not fit the endpoint's protocol."""
+    protocol = endpoint.split("/", 1)[0]
+    if path is None:
+        if protocol == "tls":
+            raise ValueError(
+                f"robot address {text!r}: a tls/ endpoint needs security=FILE with a tls "
+                "section (scripts/make_link_certs.py writes one)"
+            )
+        return None
+    if not path:
+        raise ValueError(f"robot address {text!r}: security= needs a file name")
+    try:
+        security = LinkSecurity.load(path)
+    except ValueError as err:
+        raise ValueError(f"robot address {text!r}: {err}") from None
+    if security.tls and protocol != "tls":
+        raise ValueError(
+            f"robot address {text!r}: security={path} sets up TLS; the endpoint must be "
+            f"tls/HOST:PORT, not {protocol}/"
+        )
+    return security
+
+
 def session_config(
     address: LinkAddress, *, listen: bool, open_timeout: float = 10.0
 ) -> zenoh.Config:
@@ -133,6 +175,8 @@ def session_config(
     config.insert_json5("transport/unicast/open_timeout", json.dumps(open_ms))
     config.insert_json5("mode", json.dumps("peer" if listen else address.mode))
     config.insert_json5("scouting/multicast/enabled", "false")
+    if address.security is not None:
+        address.security.apply(config, listen=listen)
     if listen:
         config.insert_json5("listen/endpoints", json.dumps([address.endpoint]))
     else:
@@ -163,5 +207,14 @@ def open_session(address: LinkAddress, *, listen: bool, timeout: float) -> zenoh
         except zenoh.ZError as err:
             if time.monotonic() >= deadline - 0.1:  # no time for another attempt
                 verb = "listen at" if listen else "reach the robot at"
-                raise LinkError(f"could not {verb} {address} within {timeout:g} s: {err}") from None
+                # Zenoh does not tell a refusal from silence on the connecting side.
+                hint = (
+                    "; with credentials, the robot may have refused them (its log says why)"
+                    if address.security is not None and not listen
+                    else ""
+                )
+                why = re.sub(r"\s*at /\S+\.rs:\d+\.?\s*$", "", str(err))  # Zenoh's source line
+                raise LinkError(
+                    f"could not {verb} {address} within {timeout:g} s: {why}{hint}"
+                ) from None
             time.sleep(0.1)

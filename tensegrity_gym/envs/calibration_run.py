@@ -286,7 +286,10 @@ def _cached(
     legs = np.random.default_rng((world_seed, CHECK_STREAM))
     fit = range_fit(cached, _simulate(description, world_seed, CHECK_SECONDS, legs, **run).samples,
                     description)  # fmt: skip
-    if not fit.fits:
+    if not fit.checked:  # too few ranges to judge (a sparse robot): a new one fares no better
+        logger.warning("calibration cache %s: too few ranges in %g s to check it (%d); "
+                       "used as it is", path, CHECK_SECONDS, fit.n_ranges)  # fmt: skip
+    elif not fit.fits:
         logger.warning("calibration cache %s does not fit the first %g s of ranges in world %d "
                        "(%s); calibrating again", path, CHECK_SECONDS, world_seed,
                        _misfit(fit))  # fmt: skip
