@@ -33,6 +33,7 @@ from hardware.bag.reader import find_bags
 from hardware.bag.replay import ReplayBackend
 from hardware.recording import hold_command
 from tensegrity_gym.envs.factory import make_estimator
+from tensegrity_gym.model.checks import output_path_error
 from tensegrity_gym.model.registry import estimator_spec
 from tensegrity_gym.tasks.gaits import FaceGait
 
@@ -291,6 +292,9 @@ def estimate_bag(
             and each failure was logged in one line.
     """
     estimator_spec(estimator)  # an unknown name is refused before any bag is opened
+    error = output_path_error(out, "--out", folder=True)
+    if error is not None:
+        raise ValueError(error)
     uwb = (
         None if calibration is None else load_uwb_calibration(calibration, argument="--calibration")
     )

@@ -198,6 +198,32 @@ def _issue(
     _write(out / f"{stem}.pem", _pem(cert))
 
 
+def _robot_certificate(
+    out: Path,
+    ca: tuple[x509.Certificate, ec.EllipticCurvePrivateKey],
+    days: int,
+    hosts: Sequence[str],
+    reissue: bool,
+) -> None:
+    """The robot's certificate: kept where ``out`` has one naming the same ``hosts``
+    (the robot already holds it; making an env's files again must not change it), else
+    issued; ValueError where one names other hosts and ``reissue`` is not set."""
+    from cryptography import x509
+
+    cert_path = out / "robot.pem"
+    if reissue or not (cert_path.exists() and (out / "robot.key").exists()):
+        _issue(out, "robot", ca, days, hosts, server=True)
+        return
+    cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
+    names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    if set(names) != set(_subject_alt_names(hosts)):
+        raise ValueError(
+            f"{cert_path} names other hosts than --host {' '.join(hosts)}: pass "
+            "--reissue-robot to replace it (and copy the new one to the robot)"
+        )
+    log.info("keeping the robot's certificate %s", cert_path)
+
+
 def _add_user(out: Path, user: str) -> str:
     """A fresh random password for ``user`` in ``users.txt`` (replacing the user's old
     line) and ``USER.password``; the password file's name."""
@@ -217,9 +243,12 @@ def make_link_certs(
     env_name: str = "env",
     user: str | None = None,
     days: int = 825,
+    reissue_robot: bool = False,
 ) -> dict[str, Path]:
     """Write the files of the module docstring into ``out``; returns the two security
-    files: ``{"robot": .../robot.yaml, "env": .../ENV_NAME.yaml}``."""
+    files: ``{"robot": .../robot.yaml, "env": .../ENV_NAME.yaml}``. Run again for
+    another env, it keeps the CA, the robot's certificate (unless ``reissue_robot``)
+    and the users already made."""
     if not hosts:
         raise ValueError("at least one --host is needed: the names the env reaches the robot by")
     if env_name == "robot" or not env_name.replace("-", "").replace("_", "").isalnum():
@@ -231,18 +260,20 @@ def make_link_certs(
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     ca = _load_or_make_ca(folder, max(days, 3650))
-    _issue(folder, "robot", ca, days, hosts, server=True)
+    _robot_certificate(folder, ca, days, hosts, reissue_robot)
     _issue(folder, env_name, ca, days, server=False)
     robot = ["tls:", "  ca: ca.pem", "  certificate: robot.pem", "  key: robot.key"]
     env = ["tls:", "  ca: ca.pem", f"  certificate: {env_name}.pem", f"  key: {env_name}.key"]
     if user is not None:
         password_file = _add_user(folder, user)
-        robot.append("users_file: users.txt")
         env += [f"user: {user}", f"password_file: {password_file}"]
+    users = (folder / "users.txt").exists()  # made now or by an earlier run: still checked
+    if users:
+        robot.append("users_file: users.txt")
     files = {"robot": folder / "robot.yaml", "env": folder / f"{env_name}.yaml"}
     _write(files["robot"], ("\n".join(robot) + "\n").encode())
     _write(files["env"], ("\n".join(env) + "\n").encode())
-    _write(folder / "robot_zenoh.json5", _zenoh_config(folder.absolute(), user is not None))
+    _write(folder / "robot_zenoh.json5", _zenoh_config(folder.absolute(), users))
     return files
 
 
@@ -279,17 +310,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--env-name", default="env", help="the env certificate's name")
     parser.add_argument("--user", default=None, help="also make a user and password")
     parser.add_argument("--days", type=int, default=825, help="days the certificates last")
+    parser.add_argument(
+        "--reissue-robot",
+        action="store_true",
+        help="replace the robot's certificate (kept by default when OUT has one)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         import cryptography  # noqa: F401
     except ImportError:
-        log.error("make_link_certs needs the cryptography package: pip install cryptography")
+        log.error("make_link_certs needs cryptography: pip install 'tensegrity-gym[tls]'")
         return 2
     try:
         files = make_link_certs(
             args.out, args.host or DEFAULT_HOSTS, env_name=args.env_name, user=args.user,
-            days=args.days,
+            days=args.days, reissue_robot=args.reissue_robot,
         )  # fmt: skip
     except (ValueError, OSError) as err:
         log.error("%s", err)

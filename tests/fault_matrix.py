@@ -26,7 +26,7 @@ import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -108,6 +108,45 @@ def robot_bag(
     return path
 
 
+def foreign_publisher(address: str, session: str) -> tuple[Any, Any]:
+    """A raw Zenoh session on the link that publishes, 50 times a second, commands
+    driving every motor to its shortest: without a session, and as ``session`` (with
+    heartbeats of its own). Returns (session, stop event)."""
+    import threading
+
+    from hardware.bag.codec import RobotCodec
+    from hardware.link.wire import COMMAND_TOPIC, HEARTBEAT_TOPIC, LinkAddress, open_session
+    from tensegrity_gym.model.description import load_robot
+
+    robot = load_robot("three_bar")
+    link = LinkAddress.parse(address)
+    zsession = open_session(link, listen=False, timeout=5.0)
+    codec = RobotCodec(robot)
+    lo, _, _ = robot.motor_limits
+    _, anonymous = codec.encode_command(0.0, lo)
+    named = codec.serialize(
+        codec.store.types["sensor_msgs/msg/JointState"](
+            header=codec.header(0.0, session),
+            name=codec.actuated_names,
+            position=lo,
+            velocity=np.empty(0),
+            effort=np.empty(0),
+        ),
+        "sensor_msgs/msg/JointState",
+    )
+    heartbeat = codec.serialize(codec.header(0.0, session), "std_msgs/msg/Header")
+    stop = threading.Event()
+
+    def publish() -> None:
+        while not stop.wait(0.02):
+            zsession.put(link.key(COMMAND_TOPIC), anonymous)
+            zsession.put(link.key(COMMAND_TOPIC), named)
+            zsession.put(link.key(HEARTBEAT_TOPIC), heartbeat)
+
+    threading.Thread(target=publish, daemon=True).start()
+    return zsession, stop
+
+
 def absurd_ranges(sample: Sample) -> Sample:
     """A UWB round whose ranges are -50 m and 10 km, alternately; other samples as they are."""
     from tensegrity_gym.model.samples import UwbRangeSample
@@ -118,9 +157,41 @@ def absurd_ranges(sample: Sample) -> Sample:
     return dataclasses.replace(sample, ranges=ranges)
 
 
+def poisoned_imu(sample: Sample) -> Sample:
+    """Every other IMU reading's specific force NaN (a sensor's glitch); others as they are."""
+    from tensegrity_gym.model.samples import ImuSample
+
+    if not isinstance(sample, ImuSample) or round(sample.t * 1000) % 2:
+        return sample
+    return dataclasses.replace(sample, accel=np.full(3, np.nan))
+
+
 def _height_map(folder: Path, name: str, heights: np.ndarray, **sidecar: object) -> None:
     np.save(folder / f"{name}.npy", heights)
     (folder / f"{name}.yaml").write_text(yaml.safe_dump({"cell_size": 0.1, **sidecar}))
+
+
+CACHE_SECONDS = 12.0
+"""The calibration runs of the cache rows: the shortest ``calibrate`` takes."""
+
+
+def _honest_cache(root: Path) -> Path:
+    """A calibration of the 3-bar robot in world 0 made into the cache at ``root``."""
+    from tensegrity_gym.envs.calibration import CACHE_VARIABLE, cache_path
+    from tensegrity_gym.envs.calibration_run import estimated_uwb_calibration
+    from tensegrity_gym.model.description import load_robot
+
+    d = load_robot("three_bar")
+    before = os.environ.get(CACHE_VARIABLE)
+    os.environ[CACHE_VARIABLE] = str(root)
+    try:
+        estimated_uwb_calibration(d, world_seed=0, seconds=CACHE_SECONDS)
+        return cache_path(d, 0, CACHE_SECONDS)
+    finally:
+        if before is None:
+            del os.environ[CACHE_VARIABLE]
+        else:
+            os.environ[CACHE_VARIABLE] = before
 
 
 def make_inputs(folder: Path) -> Path:
@@ -130,6 +201,7 @@ def make_inputs(folder: Path) -> Path:
     bag = robot_bag(folder / "intact", periods=60)
     robot_bag(folder / "no_commands", commands=False)
     robot_bag(folder / "absurd_uwb", edit=absurd_ranges)
+    robot_bag(folder / "poisoned_imu", edit=poisoned_imu)
     mcap = next(bag.glob("*.mcap")).read_bytes()
     cut = folder / "cut_short"
     cut.mkdir(exist_ok=True)
@@ -143,6 +215,12 @@ def make_inputs(folder: Path) -> Path:
              "--host", "127.0.0.1", "--user", "env"],
             check=True, capture_output=True,
         )  # fmt: skip
+    ours = folder / "ours"
+    (folder / "wrong_password.yaml").write_text(
+        f"tls: {{ca: {ours}/ca.pem, certificate: {ours}/env.pem, key: {ours}/env.key}}\n"
+        "user: env\npassword: not-the-password\n"
+    )
+    _honest_cache(folder / "cache")
     (folder / "broken.yaml").write_text("name: x\nrods: [\n  - {a: 1\n")
     (folder / "binary.yaml").write_bytes(bytes(range(256))[::-1] * 4)
     return folder
@@ -159,6 +237,21 @@ _EMULATOR = (
 )
 """A snippet's start: an emulated 3-bar robot ``emu``; the row closes the call (``)``
 or ``, security=...)``) and starts it."""
+
+_CACHE = (
+    "import logging, os, shutil, sys\nfrom dataclasses import replace\n"
+    "import gymnasium as gym, tensegrity_gym\n"
+    "from estimation.uwb_calibration import load_calibration, save_calibration\n"
+    "from tensegrity_gym.envs.calibration_run import estimated_uwb_calibration\n"
+    "from tensegrity_gym.envs.calibration import cache_path\n"
+    "from tensegrity_gym.model.description import load_robot\n"
+    "logging.basicConfig(level=logging.WARNING, stream=sys.stdout)\n"
+    "os.environ['TENSEGRITY_GYM_CACHE'] = OUT + '/cache'\n"
+    "shutil.copytree(INPUTS + '/cache', OUT + '/cache', dirs_exist_ok=True)\n"
+    "d = load_robot('three_bar')\npath = cache_path(d, 0, 12.0)\n"
+)
+"""A snippet's start: the honest 12 s cache of :func:`make_inputs` copied into the
+row's own cache, ``path`` its file; logging (warnings) on stdout."""
 
 FAULTS: tuple[Fault, ...] = (
     # -- issue 39: crashes and hangs
@@ -242,12 +335,58 @@ FAULTS: tuple[Fault, ...] = (
           f"gym.make({HW!r}, driver='zenoh/tls/127.0.0.1:7447')"),
     Fault("emulate --duration nan", "cli", r"--duration nan must be a finite number",
           argv=("emulate", "--duration", "nan")),
+    Fault("another env publishing commands", "ok", r"^held$", timeout=60.0,
+          code=f"{_EMULATOR}).start()\nimport numpy as np\n"
+          "from hardware.link import ZenohDriver\n"
+          "from tests.fault_matrix import foreign_publisher\n"
+          "from tensegrity_gym.model.description import load_robot\n"
+          "from tensegrity_gym.model.samples import EncoderSample\n"
+          "d = load_robot('three_bar')\nhold = d.rest_lengths[d.actuated]\n"
+          "driver = ZenohDriver(d, emu.address)\ndriver.reset(np.random.default_rng(0))\n"
+          "foreign, stop = foreign_publisher(emu.address, 'intruder')\nworst = 0.0\n"
+          "for _ in range(15):\n    for s in driver.step(hold).samples:\n"
+          "        if isinstance(s, EncoderSample):\n"
+          "            worst = max(worst, float(np.abs(s.rest_lengths - hold).max()))\n"
+          "stop.set()\ndriver.close()\nforeign.close()\n"
+          "print('held' if worst < 5e-4 else f'moved {1e3 * worst:.2f} mm')"),
+    Fault("a wrong password", "api",
+          r"^LinkError: could not reach the robot at .*wrong_password\.yaml within 5 s",
+          timeout=60.0,
+          code=f"{_EMULATOR}, security=INPUTS + '/ours/robot.yaml').start()\n"
+          f"env = gym.make({HW!r}, driver=emu.address + '?security=' + INPUTS + "
+          "'/wrong_password.yaml')\nenv.reset(seed=0)"),
+    # -- issue 39: the calibration cache
+    Fault("a cache whose offsets are shifted by 5 m", "ok",
+          r"does not fit the first 3 s of ranges .*calibrating again", timeout=120.0,
+          code=_CACHE + "c = load_calibration(path)\nn = d.n_nodes\no = c.offsets.copy()\n"
+          "o[n:, :n] += 5.0\no[:n, n:] += 5.0\n"
+          "save_calibration(path, replace(c.result, offsets=o), robot=c.robot)\n"
+          "estimated_uwb_calibration(d, world_seed=0, seconds=12.0)"),
+    Fault("a cache with the wrong anchor count", "ok",
+          r"it has 4 anchors .* has 8 .*calibrating again", timeout=120.0,
+          code=_CACHE + "import numpy as np\nc = load_calibration(path)\n"
+          "keep = list(range(d.n_nodes + 4))\n"
+          "lab = replace(c.to_calibration(), anchors=c.anchors[:4],\n"
+          "              uwb_offsets=c.offsets[np.ix_(keep, keep)])\n"
+          "save_calibration(path, lab, robot=d.name)\n"
+          "estimated_uwb_calibration(d, world_seed=0, seconds=12.0)"),
+    Fault("a cache path that is a folder", "api", r"calibration cache .* is a folder, not a file",
+          code=_CACHE + "cache_path(d, 0, 120.0).mkdir(parents=True)  # make's default run\n"
+          f"gym.make({ENV!r}, calibration='estimated')"),
+    Fault("a binary file as calibration=", "api",
+          r"^\w+Error: make: calibration='.*binary\.yaml': not a calibration file: binary",
+          code=f"{_MAKE}, calibration=INPUTS + '/binary.yaml')"),
+    # -- issue 39: training
+    Fault("a training run that diverges", "cli", r"training diverged: non-finite .* timestep",
+          timeout=300.0,
+          argv=("train", "--out", "{out}/t", "--timesteps", "512", "--n-envs", "1",
+                "--hyperparams", "learning_rate:1e30", "n_steps:64", "batch_size:32")),
     # -- the matrix before issue 39
     Fault("the robot dies mid-episode", "api", r"^LinkError: .*no sensor message",
           since="earlier", timeout=60.0,
           code=f"{_EMULATOR}).start()\nenv = gym.make({HW!r}, driver=emu.address)\n"
           "env.reset(seed=0)\n"
-          "emu.kill()\nfor _ in range(100):\n    env.step(env.action_space.sample())"),
+          "emu.kill()\nfor _ in range(100):\n    env.step(env.action_space.sample() * 0)"),
     Fault("a NaN action", "api", r"^ValueError: .*action.*finite", since="earlier",
           code=f"import numpy as np\n{_MAKE})\nenv.reset(seed=0)\n"
           "env.step(np.full(env.action_space.shape, np.nan))"),
@@ -258,6 +397,22 @@ FAULTS: tuple[Fault, ...] = (
           "    obs, r, term, trunc, _ = env.step(a)\n"
           "    ok += bool(np.all(np.isfinite(obs)) and np.isfinite(r))\n"
           "    if term or trunc:\n        env.reset()\nprint('finite', ok)"),
+    Fault("a bag with NaN IMU readings", "ok", r"^finite \{'undecodable': [1-9]\d*",
+          since="earlier",
+          code="import json\nfrom pathlib import Path\nfrom agents.offline import estimate_bag\n"
+          "[m] = estimate_bag(INPUTS + '/poisoned_imu', 'ukf', Path(OUT) / 'e', progress=False)\n"
+          "print('finite' if m['finite'] else 'NOT FINITE', m['skipped_messages'])"),
+    Fault("a lossy, jittery, reordering link", "ok", r"^finite 30 of 30$", since="earlier",
+          timeout=90.0,
+          code="import numpy as np\nimport gymnasium as gym, tensegrity_gym\n"
+          "from hardware.link.process import EmulatorProcess\n"
+          "emu = EmulatorProcess('three_bar', options=['--loss', '0.5', '--jitter', '0.03', "
+          "'--reorder', '0.2', '--seed', '0']).start()\n"
+          f"env = gym.make({HW!r}, driver=emu.address)\nobs, _ = env.reset(seed=0)\nok = 0\n"
+          "hold = np.zeros(env.action_space.shape, np.float32)\n"
+          "for _ in range(30):\n    obs, r, *_ = env.step(hold)\n"
+          "    ok += bool(np.all(np.isfinite(obs)) and np.isfinite(r))\n"
+          "env.close()\nemu.stop()\nprint(f'finite {ok} of 30')"),
     Fault("a recording cut short by a crash", "ok", r"cut_short: \d+ steps", since="earlier",
           argv=("estimate", "{inputs}/cut_short", "--out", "{out}/e", "--no-progress")),
     Fault("an unknown env id", "cli", r"Environment `Nope` doesn't exist", since="earlier",

@@ -214,3 +214,14 @@ def test_an_env_dropped_without_close_releases_its_simulator() -> None:
         del env, world
         gc.collect()
         assert not any(_connected(c) for c in clients)
+
+
+def test_estimate_refuses_an_out_path_it_cannot_write_before_any_bag(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    bag = robot_bag(tmp_path / "bag")
+    for out, says in ((a_file, "is a file, not a folder"), (a_file / "x", "is a file, not")):
+        code, error = run_cli(["estimate", str(bag), "--out", str(out), "--no-progress"], caplog)
+        assert code == 2 and f"--out '{out}'" in error and says in error, error

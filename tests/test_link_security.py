@@ -25,6 +25,7 @@ from hardware.link.process import EmulatorProcess
 from hardware.link.security import LinkSecurity, _ZenohLog
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.samples import EncoderSample
+from tests.fault_matrix import foreign_publisher
 
 if TYPE_CHECKING:
     from collections.abc import Iterator
@@ -95,14 +96,24 @@ def test_make_link_certs_writes_a_ca_and_the_two_sides(tmp_path: Path) -> None:
     assert LinkSecurity.load(files["robot"]).users_file == tmp_path / "users.txt"
     zenoh.Config.from_file(str(tmp_path / "robot_zenoh.json5"))  # for a robot not ours
     assert LinkSecurity.load(files["env"]).user == "env"
-    # Run again for a second env: the same CA signs it.
-    second = make_link_certs(tmp_path, hosts=["robot.local"], env_name="env2", user="env2")
+    # Run again for a second env: the same CA signs it, the robot keeps its certificate.
+    robot_pem = (tmp_path / "robot.pem").read_bytes()
+    hosts = ["robot.local", "192.168.1.20"]
+    second = make_link_certs(tmp_path, hosts=hosts, env_name="env2", user="env2")
     x509.load_pem_x509_certificate((tmp_path / "env2.pem").read_bytes()).verify_directly_issued_by(
         ca
     )
     assert x509.load_pem_x509_certificate((tmp_path / "ca.pem").read_bytes()) == ca
     assert len((tmp_path / "users.txt").read_text().splitlines()) == 2
     assert LinkSecurity.load(second["env"]).certificate == tmp_path / "env2.pem"
+    assert (tmp_path / "robot.pem").read_bytes() == robot_pem
+    # A third env without a user: the robot still checks the users it has.
+    make_link_certs(tmp_path, hosts=hosts, env_name="env3")
+    assert LinkSecurity.load(files["robot"]).users_file == tmp_path / "users.txt"
+    with pytest.raises(ValueError, match=r"robot\.pem names other hosts .*--reissue-robot"):
+        make_link_certs(tmp_path, hosts=["robot.local"], env_name="env4")
+    make_link_certs(tmp_path, hosts=["robot.local"], env_name="env4", reissue_robot=True)
+    assert (tmp_path / "robot.pem").read_bytes() != robot_pem
 
 
 def test_security_options_and_files_are_refused_in_one_line(tmp_path: Path) -> None:
@@ -305,43 +316,6 @@ def test_user_and_password_alone_let_the_right_env_in(lab: dict[str, Path], tmp_
     assert _log_lines(log, r"refused 127\.0\.0\.1:\d+: no user or password")
 
 
-def _foreign_publisher(address: str, session: str) -> tuple[Any, Any]:
-    """A raw Zenoh session on the link that publishes, 50 times a second, commands
-    driving every motor to its shortest: without a session, and as ``session`` (with
-    heartbeats of its own). Returns (session, stop event)."""
-    import threading
-
-    from hardware.bag.codec import RobotCodec
-    from hardware.link.wire import COMMAND_TOPIC, HEARTBEAT_TOPIC, open_session
-
-    link = LinkAddress.parse(address)
-    zsession = open_session(link, listen=False, timeout=5.0)
-    codec = RobotCodec(THREE_BAR)
-    lo, _, _ = THREE_BAR.motor_limits
-    _, anonymous = codec.encode_command(0.0, lo)
-    named = codec.serialize(
-        codec.store.types["sensor_msgs/msg/JointState"](
-            header=codec.header(0.0, session),
-            name=codec.actuated_names,
-            position=lo,
-            velocity=np.empty(0),
-            effort=np.empty(0),
-        ),
-        "sensor_msgs/msg/JointState",
-    )
-    heartbeat = codec.serialize(codec.header(0.0, session), "std_msgs/msg/Header")
-    stop = threading.Event()
-
-    def publish() -> None:
-        while not stop.wait(0.02):
-            zsession.put(link.key(COMMAND_TOPIC), anonymous)
-            zsession.put(link.key(COMMAND_TOPIC), named)
-            zsession.put(link.key(HEARTBEAT_TOPIC), heartbeat)
-
-    threading.Thread(target=publish, daemon=True).start()
-    return zsession, stop
-
-
 def test_a_foreign_command_publisher_moves_no_motor_while_the_env_drives(
     tmp_path: Path,
 ) -> None:
@@ -363,7 +337,7 @@ def test_a_foreign_command_publisher_moves_no_motor_while_the_env_drives(
             for topic in seen
         ]
         driver.reset(np.random.default_rng(0))
-        foreign, stop = _foreign_publisher(process.address, "intruder")
+        foreign, stop = foreign_publisher(process.address, "intruder")
         encoders = []
         try:
             for _ in range(15):
@@ -389,3 +363,13 @@ def test_a_foreign_command_publisher_moves_no_motor_while_the_env_drives(
     [stats] = _log_lines(log, r"emulator stopped: ")
     refused = int(re.search(r"refused_commands=(\d+)", stats).group(1))  # type: ignore[union-attr]
     assert refused > 20, stats
+
+
+def test_an_envs_security_file_on_the_robots_side_is_refused(lab: dict[str, Path]) -> None:
+    """A users-only env file given to the emulator would listen with no check at all."""
+    import zenoh
+
+    security = LinkSecurity.load(lab["users_env"])
+    with pytest.raises(ValueError, match=r"the robot's side needs tls or users_file"):
+        security.apply(zenoh.Config(), listen=True)
+    security.apply(zenoh.Config(), listen=False)  # the env's side takes it

@@ -33,6 +33,7 @@ import numpy as np
 import yaml
 
 from estimation.uwb_calibration.result import CalibrationResult, ResidualStats
+from tensegrity_gym.model.checks import output_path_error
 from tensegrity_gym.model.protocols import SensorCalibration
 
 if TYPE_CHECKING:
@@ -159,18 +160,10 @@ def check_output_path(
     Raises:
         CalibrationFileError: one line naming ``argument``, the path and what is wrong.
     """
-    target = Path(path)
-    where = f"{argument} {str(path)!r}"
-    if target.is_dir():
-        raise CalibrationFileError(f"{where} is a folder, not a file")
-    folder = target.parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir():
-        raise CalibrationFileError(f"{where}: {folder} is a file, not a folder")
-    if writable and not os.access(folder, os.W_OK | os.X_OK):
-        raise CalibrationFileError(f"{where}: the folder {folder} is not writable")
-    return target
+    error = output_path_error(path, argument, writable=writable)
+    if error is not None:
+        raise CalibrationFileError(error)
+    return Path(path)
 
 
 class _Reader:

@@ -116,7 +116,13 @@ class LinkSecurity:
 
     def apply(self, config: zenoh.Config, *, listen: bool) -> None:
         """Insert these credentials into a Zenoh configuration for the listening
-        (robot's) side or the connecting (env's) side."""
+        (robot's) side or the connecting (env's) side; ValueError for a file that
+        gives the listening side nothing to check a peer with (an env's file)."""
+        if listen and not (self.tls or self.users_file is not None):
+            raise ValueError(
+                f"security file {self.source}: the robot's side needs tls or users_file "
+                "(this is an env's file?); with neither it would let anyone in"
+            )
         if self.tls:
             side = "listen" if listen else "connect"
             tls: dict[str, Any] = {
@@ -229,6 +235,13 @@ _REFUSALS = (  # (Zenoh's message, why, whether Zenoh logged the connection befo
 )
 _SOURCE_LINE = re.compile(r"\s*at /\S+\.rs:\d+\.?\s*$")
 """Where in Zenoh's source a message was raised: noise in a lab's log."""
+
+
+def without_source_line(message: str) -> str:
+    """A Zenoh error or log message without its trailing ``at /path/file.rs:N``."""
+    return _SOURCE_LINE.sub("", message)
+
+
 LOG_EVERY = 5.0
 """Seconds between two log lines of one kind of refusal or Zenoh warning."""
 _ACCEPTED = re.compile(
@@ -267,7 +280,7 @@ class _ZenohLog:
                 self.logger.info("%s", text)  # not Zenoh's (a library printing to stdout)
             return
         message = match["message"].replace(" Hint: increase the system open file limit.", "")
-        message = _SOURCE_LINE.sub("", message)
+        message = without_source_line(message)
         accepted = _ACCEPTED.search(message)
         if accepted:
             cn = accepted["cn"]

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from hardware.bag.messages import COMMAND_TOPIC
-from hardware.link.security import LinkSecurity
+from hardware.link.security import LinkSecurity, without_source_line
 
 if TYPE_CHECKING:
     import zenoh
@@ -213,7 +213,7 @@ def open_session(address: LinkAddress, *, listen: bool, timeout: float) -> zenoh
                     if address.security is not None and not listen
                     else ""
                 )
-                why = re.sub(r"\s*at /\S+\.rs:\d+\.?\s*$", "", str(err))  # Zenoh's source line
+                why = without_source_line(str(err))
                 raise LinkError(
                     f"could not {verb} {address} within {timeout:g} s: {why}{hint}"
                 ) from None

@@ -4,7 +4,9 @@ number belongs is refused where it is given, not deep inside the simulation."""
 from __future__ import annotations
 
 import math
+import os
 from numbers import Real
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -20,6 +22,7 @@ __all__ = [
     "check_open",
     "check_optional_number",
     "check_whole",
+    "output_path_error",
     "yaml_problem",
 ]
 
@@ -110,3 +113,32 @@ def yaml_problem(err: yaml.YAMLError) -> str:
     if mark is None:
         return what
     return f"line {mark.line + 1}, column {mark.column + 1}: {what}"
+
+
+def output_path_error(
+    path: str | os.PathLike[str], argument: str, *, folder: bool = False, writable: bool = True
+) -> str | None:
+    """Why ``path``, given as ``argument`` (``"--out"``), cannot be written, in one line
+    naming both (``"--out 'x' is a folder, not a file"``), or None; checked before any
+    long computation.
+
+    Args:
+        folder: ``path`` is a folder to write into (it must not be a file); else a file
+            (it must not be a folder).
+        writable: the nearest folder that exists on the way must be writable (the
+            missing ones are made when the output is written).
+    """
+    target = Path(path)
+    where = f"{argument} {str(path)!r}"
+    if folder and target.exists() and not target.is_dir():
+        return f"{where} is a file, not a folder"
+    if not folder and target.is_dir():
+        return f"{where} is a folder, not a file"
+    nearest = target if folder else target.parent
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    if not nearest.is_dir():
+        return f"{where}: {nearest} is a file, not a folder"
+    if writable and not os.access(nearest, os.W_OK | os.X_OK):
+        return f"{where}: the folder {nearest} is not writable"
+    return None
