@@ -121,19 +121,17 @@ def _non_negative_float(text: str) -> float:
 
 def _calibration_seconds(text: str) -> float:
     """An argparse type: a calibration run's length (s), in the range
-    :func:`agents.calibration_run.check_seconds` takes."""
-    from agents.calibration_run import MAX_SECONDS, min_seconds
+    :func:`agents.calibration_run.check_seconds` takes (its message, after the flag)."""
+    from agents.calibration_run import check_seconds
 
     try:
-        value = float(text)
+        seconds = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"must be a number of seconds, got {text!r}") from None
-    if not min_seconds() <= value <= MAX_SECONDS:  # NaN fails too
-        raise argparse.ArgumentTypeError(
-            f"must be a number of seconds in [{min_seconds():g}, {MAX_SECONDS:g}] (the "
-            f"calibrator's samples need the least; more gains nothing), got {text}"
-        )
-    return value
+    try:
+        return check_seconds(seconds)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err).partition(": ")[2]) from None
 
 
 def _port(text: str) -> int:

@@ -275,6 +275,37 @@ def train(
     ``workers`` Ray actors of that cluster (default: one per CPU of the cluster, at most
     ``n_envs``); the learner and the run folder stay in this process.
     """
+    if workers is not None and ray_address is None:
+        raise ValueError("workers are Ray actors: give the cluster's address (--ray)")
+    config = _checked_config(
+        env_id, algo, estimator, timesteps, seed, n_envs, config_file, hyperparams, env_kwargs
+    )
+    if workers is not None and workers < 1:
+        raise ValueError(f"workers ({workers}) must be positive")
+    if ray_address is None:
+        return _run(config, out, checkpoint_every, progress_bar, callbacks, None)
+    from agents.cluster import cluster_session, require_ray
+
+    with cluster_session(ray_address):
+        if workers is None:
+            cpus = int(require_ray().cluster_resources().get("CPU", 1))
+            workers = max(1, min(config.n_envs, cpus))
+        return _run(config, out, checkpoint_every, progress_bar, callbacks, workers)
+
+
+def _checked_config(
+    env_id: str,
+    algo: str,
+    estimator: str,
+    timesteps: int | None,
+    seed: int,
+    n_envs: int | None,
+    config_file: Path | None,
+    hyperparams: Mapping[str, Any] | None,
+    env_kwargs: dict[str, Any] | None,
+) -> TrainConfig:
+    """What :func:`train` runs, every part checked before any env is made: the env id,
+    the estimator, the env's arguments, the hyperparameters by their ranges."""
     import gymnasium as gym
 
     estimator_spec(estimator)  # an unknown name is refused before anything starts
@@ -289,26 +320,13 @@ def train(
     params.pop("n_timesteps", None)
     envs = int(n_envs if n_envs is not None else params.pop("n_envs", 1))
     params.pop("n_envs", None)
-    if total < 1 or envs < 1 or (workers is not None and workers < 1):
-        raise ValueError(
-            f"timesteps ({total}), n_envs ({envs}) and workers ({workers}) must be positive"
-        )
-    if workers is not None and ray_address is None:
-        raise ValueError("workers are Ray actors: give the cluster's address (--ray)")
+    if total < 1 or envs < 1:
+        raise ValueError(f"timesteps ({total}) and n_envs ({envs}) must be positive")
     if algo == "ppo":  # its minibatches are drawn from one rollout of n_steps * n_envs
         ppo = _defaults(algo) | params
         check_rollout(ppo["n_steps"], envs, ppo["batch_size"], ppo["normalize_advantage"])
     kwargs = {"estimator": estimator, **(env_kwargs or {})}
-    config = TrainConfig(env_id, algo, estimator, total, seed, envs, dict(params), kwargs)
-    if ray_address is None:
-        return _run(config, out, checkpoint_every, progress_bar, callbacks, None)
-    from agents.cluster import cluster_session, require_ray
-
-    with cluster_session(ray_address):
-        if workers is None:
-            cpus = int(require_ray().cluster_resources().get("CPU", 1))
-            workers = max(1, min(envs, cpus))
-        return _run(config, out, checkpoint_every, progress_bar, callbacks, workers)
+    return TrainConfig(env_id, algo, estimator, total, seed, envs, dict(params), kwargs)
 
 
 def _defaults(algo: str) -> dict[str, Any]:
