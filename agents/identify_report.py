@@ -10,6 +10,7 @@ import numpy as np
 
 from agents.identify import MAX_EVALUATIONS, MODELS, identify_run, parameter_values
 from agents.plots import pyplot
+from tensegrity_gym.model.checks import output_path_error
 from tensegrity_gym.model.description import dump_robot, load_robot
 from tensegrity_gym.model.kinematics import center_of_mass
 
@@ -45,6 +46,9 @@ def identify_command(
         ) from error
     from hardware.bag.reader import read_run
 
+    error = output_path_error(out, "--out")  # before the fit, not after its minutes
+    if error is not None:
+        raise ValueError(error)
     start = load_robot(robot) if robot else None
     run = read_run(Path(bag), description=start)
     result = identify_run(

@@ -295,6 +295,8 @@ FAULTS: tuple[Fault, ...] = (
     Fault("identify --segment-seconds 0", "cli", r"argument --segment-seconds",
           argv=("identify", "{inputs}/intact", "--out", "{out}/r.yaml",
                 "--segment-seconds", "0")),
+    Fault("identify --out a folder", "cli", r"--out '.*c_dir' is a folder, not a file",
+          argv=("identify", "{inputs}/intact", "--out", "{out}/c_dir")),
     Fault("view --port 70000", "cli", r"argument --port: must be a TCP port in \[0, 65535\]",
           argv=("view", "--port", "70000")),
     Fault("height_scale=1e6", "api", r"steeper than 100 .*check height_scale",

@@ -718,7 +718,7 @@ def test_a_robot_node_written_with_zenoh_and_rosbags_alone_is_driven(
 
     from hardware.link.process import free_port
     from tensegrity_gym.model.kinematics import center_of_mass
-    from tests.test_link_security import _foreign_publisher
+    from tests.fault_matrix import foreign_publisher
 
     example = Path(__file__).parents[1] / "examples" / "robot_node_with_zenoh.py"
     serve = runpy.run_path(str(example), run_name="example")["serve"]
@@ -731,7 +731,7 @@ def test_a_robot_node_written_with_zenoh_and_rosbags_alone_is_driven(
         _, info = env.reset(seed=0)
         assert info["robot_settled"]
         with caplog.at_level(logging.INFO, logger="robot_node"):
-            foreign, stop = _foreign_publisher(f"zenoh/tcp/127.0.0.1:{port}", "intruder")
+            foreign, stop = foreign_publisher(f"zenoh/tcp/127.0.0.1:{port}", "intruder")
             for _ in range(10):
                 obs, _, _, _, info = env.step(np.zeros(6, np.float32))
                 assert np.all(np.isfinite(obs)) and not info["link_stalled"]
