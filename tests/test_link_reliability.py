@@ -317,3 +317,30 @@ def test_a_forked_worker_exiting_leaves_the_parents_link_alone(
     for _ in range(3):
         result = stepping.step(NOMINAL)
         assert result.samples and not result.info["link_stalled"]
+
+
+ABANDONS_ITS_EMULATOR = """
+from hardware.link.process import EmulatorProcess
+print(EmulatorProcess("three_bar").start().process.pid, flush=True)
+"""
+"""A script that starts an emulator and ends without stopping it."""
+
+
+def test_an_emulator_left_running_stops_when_its_starter_ends() -> None:
+    run = subprocess.run(
+        [sys.executable, "-c", ABANDONS_ITS_EMULATOR], capture_output=True, text=True, timeout=60
+    )
+    assert run.returncode == 0, run.stderr
+    pid = int(run.stdout.split()[-1])
+    deadline = time.monotonic() + 10.0
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return
+        with open(f"/proc/{pid}/stat") as stat:  # a zombie of init's is gone too
+            if stat.read().split(") ")[1].startswith("Z"):
+                return
+        time.sleep(0.2)
+    os.kill(pid, signal.SIGKILL)
+    pytest.fail(f"the emulator {pid} still ran 10 s after the script that started it ended")

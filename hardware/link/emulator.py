@@ -21,6 +21,7 @@ import dataclasses
 import heapq
 import logging
 import math
+import os
 import signal
 import threading
 import time
@@ -456,6 +457,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--duration", type=float, default=None, help="stop after this many s")
     parser.add_argument(
+        "--exit-with",
+        type=int,
+        default=None,
+        metavar="PID",
+        help="stop when process PID (the one that started this one) has ended",
+    )
+    parser.add_argument(
         "--mute",
         action="append",
         default=[],
@@ -524,6 +532,8 @@ def run_from_args(args: argparse.Namespace) -> int:
 
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
+    if args.exit_with is not None:
+        _stop_when_gone(args.exit_with, emulator)
     ready_out = forward_zenoh_log(log)
     try:
         emulator.start()
@@ -543,6 +553,20 @@ def run_from_args(args: argparse.Namespace) -> int:
     if refused:
         log.info("emulator: refused messages by session: %s", refused)
     return 0
+
+
+def _stop_when_gone(parent: int, emulator: Emulator) -> None:
+    """Stop ``emulator`` once process ``parent`` has ended (this process is then handed
+    to another parent): a script or test that started it and died, or never stopped
+    it, leaves no emulator running behind it."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        log.info("emulator: process %d that started it has ended; stopping", parent)
+        emulator.stop()
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -77,6 +77,7 @@ class EmulatorProcess:
             return self
         args = [sys.executable, "-m", "hardware.link.emulator", "--robot", self.robot]
         args += ["--listen", f"{self.protocol}/127.0.0.1:{self.port}", *self.options]
+        args += ["--exit-with", str(os.getpid())]  # never outlives this process
         if self.security is not None:
             args += ["--security", str(self.security)]
         log: BinaryIO | int = subprocess.DEVNULL
