@@ -46,9 +46,9 @@ def identify_command(
         ) from error
     from hardware.bag.reader import read_run
 
-    error = output_path_error(out, "--out")  # before the fit, not after its minutes
-    if error is not None:
-        raise ValueError(error)
+    unwritable = output_path_error(out, "--out")  # before the fit, not after its minutes
+    if unwritable is not None:
+        raise ValueError(unwritable)
     start = load_robot(robot) if robot else None
     run = read_run(Path(bag), description=start)
     result = identify_run(
