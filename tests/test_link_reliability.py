@@ -344,3 +344,25 @@ def test_an_emulator_left_running_stops_when_its_starter_ends() -> None:
         time.sleep(0.2)
     os.kill(pid, signal.SIGKILL)
     pytest.fail(f"the emulator {pid} still ran 10 s after the script that started it ended")
+
+
+def test_a_hardware_env_dropped_without_close_releases_its_link(
+    emulator: EmulatorProcess,
+) -> None:
+    """Zenoh's callback and the heartbeat thread hold the driver only weakly: an env
+    garbage-collected without close() takes its session with it."""
+    import gc
+    import weakref
+
+    env = gym.make(HW_ID, driver=emulator.address, estimator="oracle")
+    env.reset(seed=0)
+    env.step(np.zeros(env.action_space.shape, np.float32))
+    driver = env.unwrapped.backend  # type: ignore[attr-defined]
+    session, gone = driver._session, weakref.ref(driver)
+    thread = driver._heartbeat_thread
+    del env, driver
+    gc.collect()
+    assert gone() is None, "something still holds the dropped env's driver"
+    assert session.is_closed()
+    thread.join(timeout=2.0)
+    assert not thread.is_alive()

@@ -74,6 +74,8 @@ from tensegrity_gym.model.samples import (
 )
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
@@ -236,7 +238,7 @@ class ZenohDriver:
         try:
             self._subscriber = session.declare_subscriber(
                 self.address.everything,
-                _direct_callback(self._on_message),
+                _direct_callback(_weakly(self._on_message)),
                 allowed_origin=zenoh.Locality.REMOTE,
             )
             self._command_pub = session.declare_publisher(key(COMMAND_TOPIC))
@@ -245,10 +247,15 @@ class ZenohDriver:
             session.close()  # type: ignore[no-untyped-call]
             raise
         self._session = session
+        # Neither Zenoh's callback nor the heartbeat thread keeps the driver alive: an
+        # env dropped without close() is collected, and this closes its session.
+        release = weakref.finalize(self, _release, session, self._stop_heartbeat)
+        release.atexit = False  # at exit, _close_open_drivers sends the stop command first
         self._stop_heartbeat.clear()
         self._heartbeat_thread = threading.Thread(
-            target=self._heartbeats, name="tensegrity-heartbeat", daemon=True
-        )
+            target=_heartbeats, args=(weakref.ref(self),), name="tensegrity-heartbeat",
+            daemon=True,
+        )  # fmt: skip
         self._heartbeat_thread.start()
         log.info("robot link: connected to %s as session %s", self.address, self.session_id)
 
@@ -270,30 +277,25 @@ class ZenohDriver:
             inbox.append((str(sample.key_expr), payload, time.monotonic()))
             self._inbox_used += size
 
-    def _heartbeats(self) -> None:
-        header_type = self.codec.store.types[HEARTBEAT_TYPE]
-        time_type = self.codec.store.types["builtin_interfaces/msg/Time"]
-        period = 1.0 / self.heartbeat_rate
-        # Heartbeats say the control loop is alive: they pause when no command has gone
-        # out for a while (a hung or interrupted policy, a long training update), and
-        # the robot holds its motors until the next command.
+    def _beat(self) -> bool:
+        """Send one heartbeat if a command went out lately; False once the session is
+        closing. Heartbeats say the control loop is alive: they pause when no command
+        has gone out for a while (a hung or interrupted policy, a long training
+        update), and the robot holds its motors until the next command."""
         grace = max(3.0 * self.control_period, 0.5)
-        next_beat = time.monotonic()
-        while not self._stop_heartbeat.is_set():
-            next_beat += period
-            if time.monotonic() - self._last_activity > grace:
-                self._stop_heartbeat.wait(max(next_beat - time.monotonic(), 0.0))
-                continue
-            now_ns = time.time_ns()
-            sec, nanosec = divmod(now_ns, 1_000_000_000)
-            stamp = time_type(sec=sec, nanosec=nanosec)
-            msg = header_type(stamp=stamp, frame_id=self.session_id)
-            try:
-                self._heartbeat_pub.put(bytes(self.codec.store.serialize_cdr(msg, HEARTBEAT_TYPE)))
-            except Exception:  # the session is closing
-                return
-            self.last_heartbeat = self.codec.seconds(now_ns)
-            self._stop_heartbeat.wait(max(next_beat - time.monotonic(), 0.0))
+        if time.monotonic() - self._last_activity > grace:
+            return True
+        now_ns = time.time_ns()
+        sec, nanosec = divmod(now_ns, 1_000_000_000)
+        store = self.codec.store
+        stamp = store.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        msg = store.types[HEARTBEAT_TYPE](stamp=stamp, frame_id=self.session_id)
+        try:
+            self._heartbeat_pub.put(bytes(store.serialize_cdr(msg, HEARTBEAT_TYPE)))
+        except Exception:  # the session is closing
+            return False
+        self.last_heartbeat = self.codec.seconds(now_ns)
+        return True
 
     def _skip(self, kind: str, topic: str, ns: int | None, why: str) -> None:
         self._skipped[kind] += 1
@@ -700,6 +702,45 @@ def _close_open_drivers() -> None:
 
 
 atexit.register(_close_open_drivers)
+
+
+def _heartbeats(ref: weakref.ReferenceType[ZenohDriver]) -> None:
+    """The heartbeat thread: :meth:`ZenohDriver._beat` at ``heartbeat_rate`` until the
+    driver stops them or is gone (held only while it beats)."""
+    driver = ref()
+    if driver is None:
+        return
+    period, stop = 1.0 / driver.heartbeat_rate, driver._stop_heartbeat
+    next_beat = time.monotonic()
+    del driver
+    while not stop.is_set():
+        next_beat += period
+        driver = ref()
+        if driver is None or not driver._beat():
+            return
+        del driver
+        stop.wait(max(next_beat - time.monotonic(), 0.0))
+
+
+def _release(session: Any, stop: threading.Event) -> None:
+    """A collected driver's link: its heartbeats stopped and its session closed."""
+    stop.set()
+    with contextlib.suppress(Exception):  # closed already (close()), or shutting down
+        if not session.is_closed():
+            session.close()
+
+
+def _weakly(method: Callable[[Any], None]) -> Callable[[Any], None]:
+    """``method`` called through a weak reference to its object (nothing once it is
+    gone), so that a callback held by Zenoh does not keep the object alive."""
+    ref = weakref.WeakMethod(method)
+
+    def call(arg: Any) -> None:
+        bound = ref()
+        if bound is not None:
+            bound(arg)
+
+    return call
 
 
 def _direct_callback(function: Any) -> Any:
