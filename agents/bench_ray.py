@@ -8,7 +8,7 @@ the ratios compare like with like on a shared, noisy machine. Figures:
   ``SubprocVecEnv``, both with the same number of workers (one env each, and two
   envs on each Ray worker);
 - env steps per second with 1 and 2 Ray workers;
-- the costs of the sizing model (README, "On a cluster"): an env step in a process of
+- the costs of the sizing model (docs/training.md, "On a cluster"): an env step in a process of
   its own (``t_env``), a worker's round trip through Ray without env work
   (``t_call``) and the driver's own share of it (``t_driver``), the bytes a step sends
   and receives per env, and the learner's update time per collected env step

@@ -1,7 +1,7 @@
-"""The README's main job: train a rolling policy with the UKF in the loop (correcting the
-robot's steering gait), train one on ground truth beside it, evaluate both (and a
-random policy and the scripted gaits) under
-the oracle, the UKF and the invariant EKF, and write the report. Sized to finish in
+"""The main job (the demo, docs/results/demo.md): train a rolling policy with the UKF in
+the loop (correcting the robot's steering gait), train one on ground truth beside it,
+evaluate both (and a random policy and the scripted gaits) under the oracle, the UKF and
+the invariant EKF, and write the report. Sized to finish in
 under 15 minutes on two cores (40,960 + 20,480 training steps)."""
 
 from __future__ import annotations
@@ -30,13 +30,13 @@ DEMO_CONDITIONS = ("oracle", "ukf", "inekf")
 """The demo evaluates every policy on ground truth, the UKF's estimates (UWB, IMU,
 cable lengths) and the proprioceptive invariant EKF's (no UWB)."""
 RESIDUAL_GAIT = 0.5
-"""The demo's policies correct the scripted gait at this scale; README, "Training", has
+"""The demo's policies correct the scripted gait at this scale; docs/training.md has
 it against absolute actions and against 2.0 (where a correction can reach every
 command), over seeds."""
 BASE_GAIT = STEER_GAIT
 """The gait the demo's policies correct: the steering gait, which rolls toward the goal
 (the forward gait rolls its own way, and a policy on it learned to aim only a little:
-README, "The demo")."""
+docs/results/demo.md)."""
 CONFIG_BY_GAIT = {STEER_GAIT: Path(__file__).parent / "configs" / "steer.yml"}
 """The hyperparameters for residual actions on a gait (others: ``agents/configs/ppo.yml``):
 the steering gait's flips are marginal, and exploration on it starts small."""
@@ -115,7 +115,7 @@ def demo_settings(
 
 
 REFERENCE = Path(__file__).parent / "configs" / "demo_seeds.json"
-"""The multi-seed run the README quotes (``demo --seeds 0 1 2``'s ``seeds.json`` with the
+"""The multi-seed run docs/results/demo.md quotes (``demo --seeds 0 1 2``'s ``seeds.json`` with the
 settings it ran with): what a one-seed demo states its result against."""
 
 

@@ -1,4 +1,4 @@
-"""Draw a bag's robot markers with matplotlib, headless (the README's picture).
+"""Draw a bag's robot markers with matplotlib, headless (the picture of docs/recordings.md).
 
     python scripts/draw_markers.py BAG OUT.png [--frame -1]
 

@@ -386,7 +386,7 @@ def test_env_record_dir_numbers_episodes_and_keeps_old_ones(tmp_path: Path) -> N
 
 
 def test_a_bag_written_with_rosbags_alone_runs_through_the_ukf(tmp_path: Path) -> None:
-    """The README's promise: a lab's own bag (examples/write_bag_with_rosbags.py) reads."""
+    """The recordings page's promise: a lab's own bag (examples/write_bag_with_rosbags.py) reads."""
     import runpy
 
     from agents.offline import estimate_bag

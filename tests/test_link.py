@@ -708,7 +708,7 @@ def test_the_record_command_runs_a_policy_on_the_robot(
 def test_a_robot_node_written_with_zenoh_and_rosbags_alone_is_driven(
     tmp_path: Any, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """The README's promise: a lab's own robot node (examples/robot_node_with_zenoh.py)
+    """The robot-link page's promise: a lab's own robot node (examples/robot_node_with_zenoh.py)
     speaks the wire; the env drives it and the UKF places it. It obeys that env only: a
     foreign publisher's commands move no motor, and are logged."""
     import logging

@@ -215,14 +215,14 @@ def test_a_record_that_wrote_a_bag_keeps_it(tmp_path) -> None:
 
 
 def _readme_rl_zoo3_command() -> list[str]:
-    """The README's rl-zoo3 training command, as written (its ``pip install`` aside)."""
+    """The training page's rl-zoo3 command, as written (its ``pip install`` aside)."""
     import re
     import shlex
     from pathlib import Path
 
-    text = (Path(__file__).parents[1] / "README.md").read_text()
+    text = (Path(__file__).parents[1] / "docs" / "training.md").read_text()
     block = re.search(r"```bash\npip install rl_zoo3\n(.*?)```", text, re.S)
-    assert block is not None, "README: the rl-zoo3 snippet is gone"
+    assert block is not None, "docs/training.md: the rl-zoo3 snippet is gone"
     return shlex.split(block.group(1).replace("\\\n", " "))
 
 

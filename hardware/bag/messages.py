@@ -7,7 +7,7 @@ types carry the rest. What ROS viewers draw (``/tf``, the robot as markers, a UR
 ``/robot_description``) is written beside them (:data:`VIEW_TOPICS`); readers pass
 over it. The sensor topics are declared with their sample kinds
 (:mod:`hardware.bag.kinds`); their names come from the robot description (rod names),
-so a robot's own bag needs nothing of this package to be readable here. The README
+so a robot's own bag needs nothing of this package to be readable here. docs/recordings.md
 holds the same table for people who write bags themselves.
 
 ``sensor_msgs/Imu`` and ``sensor_msgs/MagneticField`` (most of a run's messages) are
