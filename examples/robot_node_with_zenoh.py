@@ -26,6 +26,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import zenoh
@@ -80,6 +81,33 @@ class Owner:
                         key, self.refused[key], self.session or "nobody")  # fmt: skip
 
 
+def listen(endpoint: str, zenoh_config: str | None = None) -> zenoh.Session:
+    """A Zenoh session listening at ``endpoint`` (``tcp/HOST:PORT``), as a peer, with no
+    multicast scouting; ``zenoh_config``: a Zenoh JSON5 file with the lab's TLS and
+    users (``robot_zenoh.json5`` of scripts/make_link_certs.py)."""
+    config = zenoh.Config.from_file(zenoh_config) if zenoh_config else zenoh.Config()
+    config.insert_json5("mode", json.dumps("peer"))
+    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+def latched(store: Any, d: Any, header: object) -> tuple[object, object]:
+    """The messages a late joiner needs, republished about once a second: the robot
+    description (YAML) and the calibration (the anchors of the layout, no offsets)."""
+    T = store.types
+    Point = T["geometry_msgs/msg/Point"]
+    n_modules = len(d.initial_positions) + len(d.anchors)
+    calibration = T["tensegrity_msgs/msg/SensorCalibration"](
+        header=header,
+        anchors=[Point(x=a[0], y=a[1], z=a[2]) for a in d.anchors],
+        n_modules=n_modules,
+        uwb_offsets=np.zeros(n_modules * n_modules),  # no offsets measured
+        camera_pose=np.eye(4).reshape(16),
+    )
+    return T["std_msgs/msg/String"](data=dump_robot(d)), calibration
+
+
 def serve(
     endpoint: str = "tcp/127.0.0.1:7447",
     seconds: float = 1e9,
@@ -90,13 +118,11 @@ def serve(
     store = typestore()
     T = store.types
     Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
-    Point = T["geometry_msgs/msg/Point"]
 
     def header(frame: str = "") -> object:
         ns = time.time_ns()  # the robot's clock, synchronised with the env's machine
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
 
-    nodes, anchors = d.initial_positions, d.anchors
     actuated = [d.cables[k].name for k in d.actuated]
     lo = np.array([d.cables[k].motor.min_rest_length for k in d.actuated])
     hi = np.array([d.cables[k].motor.max_rest_length for k in d.actuated])
@@ -106,11 +132,7 @@ def serve(
     owner = Owner()
     lock = threading.Lock()
 
-    config = zenoh.Config.from_file(zenoh_config) if zenoh_config else zenoh.Config()
-    config.insert_json5("mode", json.dumps("peer"))
-    config.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    config.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(config)
+    session = listen(endpoint, zenoh_config)
 
     def put(topic: str, msgtype: str, msg: object) -> None:
         # ROS topic /a/b is Zenoh key a/b; the payload is the message's CDR bytes.
@@ -134,15 +156,7 @@ def serve(
         session.declare_subscriber("commands/rest_length_targets", on_command),
         session.declare_subscriber("tensegrity/heartbeat", on_heartbeat),
     ]
-    n_modules = len(nodes) + len(anchors)
-    calibration = T["tensegrity_msgs/msg/SensorCalibration"](
-        header=header("world"),
-        anchors=[Point(x=a[0], y=a[1], z=a[2]) for a in anchors],
-        n_modules=n_modules,
-        uwb_offsets=np.zeros(n_modules * n_modules),  # no offsets measured
-        camera_pose=np.eye(4).reshape(16),
-    )
-    description = T["std_msgs/msg/String"](data=dump_robot(d))
+    description, calibration = latched(store, d, header("world"))
     quats = rod_orientations(d)
 
     start = time.monotonic()

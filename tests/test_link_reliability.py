@@ -310,6 +310,10 @@ def test_a_forked_worker_exiting_leaves_the_parents_link_alone(
     close them (or send stop commands through sessions it cannot use)."""
     import multiprocessing
 
+    from hardware.link import driver as driver_module
+
+    # The early exit hook (Zenoh without a direct callback) runs in a forked child too.
+    driver_module._close_before_threads_join()
     child = multiprocessing.get_context("fork").Process(target=_exit_at_once)
     child.start()
     child.join(timeout=20.0)
