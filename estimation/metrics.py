@@ -1,11 +1,11 @@
 """Error metrics of the field, each as the papers define it.
 
-Per rod (papers/003 section 5): translation error of the rod centre, 5-DoF rotation
+Per rod (Lu et al. 2022 section 5): translation error of the rod centre, 5-DoF rotation
 error (the angle between the estimated and true rod axes: a rod is symmetric about its
 axis), and the share of rod poses within 2 cm and 5 degrees; the CoM error; the shape
 error, the mean error of endcap-to-endcap distances.
 
-Trajectories (papers/002 section V): absolute trajectory error after a rigid
+Trajectories (Tong et al. 2024 section V): absolute trajectory error after a rigid
 alignment (Umeyama, no scale), relative pose error over a fixed number of frames,
 final drift and drift percentage (final drift / true path length). The pose of the
 robot as a whole is its body frame (:func:`body_poses`). The ATE and RPE follow evo's
@@ -49,7 +49,7 @@ class RodErrors:
     """(T, r) angle between estimated and true rod axes (rad)."""
 
     def share_within(self, translation: float = 0.02, rotation_deg: float = 5.0) -> float:
-        """Share of rod poses within both bounds (papers/003: 2 cm and 5 degrees)."""
+        """Share of rod poses within both bounds (Lu et al. 2022: 2 cm and 5 degrees)."""
         ok = (self.translation <= translation) & (self.rotation <= np.radians(rotation_deg))
         return float(np.mean(ok))
 
@@ -93,7 +93,7 @@ def shape_errors(
 ) -> NDArray[np.float64]:
     """(T,) mean absolute error of endcap-to-endcap distances (m), every pair by default.
 
-    Independent of the frame: it scores the shape alone (papers/003).
+    Independent of the frame: it scores the shape alone (Lu et al. 2022).
     """
     est, true = np.asarray(est_nodes), np.asarray(true_nodes)
     if est.ndim == 2:
@@ -113,7 +113,7 @@ def body_poses(
 ) -> NDArray[np.float64]:
     """The robot's body frame, (T, 4, 4), from node positions (T, n, 3).
 
-    Origin at the centre of mass; z along the first rod (as papers/002 puts its body z
+    Origin at the centre of mass; z along the first rod (as Tong et al. 2024 puts its body z
     along its base rod); x toward the second rod's centre, made orthogonal to z.
     """
     x = np.asarray(nodes, dtype=np.float64)
@@ -183,14 +183,14 @@ class TrajectoryErrors:
 
     @property
     def drift_percentage(self) -> float:
-        """100 * final drift / path length (papers/002)."""
+        """100 * final drift / path length (Tong et al. 2024)."""
         return 100.0 * self.final_drift / self.path_length if self.path_length > 0 else np.nan
 
 
 def trajectory_errors(
     est_poses: NDArray[np.float64], true_poses: NDArray[np.float64], rpe_delta: int = 1
 ) -> TrajectoryErrors:
-    """The trajectory metrics of papers/002 for body poses (T, 4, 4)."""
+    """The trajectory metrics of Tong et al. 2024 for body poses (T, 4, 4)."""
     _check(est_poses, true_poses, "trajectory_errors")
     p_est, p_true = est_poses[:, :3, 3], true_poses[:, :3, 3]
     ate = absolute_trajectory_error(p_est, p_true)

@@ -39,7 +39,7 @@ predicted); 8 of them is never reached by noise over a lifetime of ranging."""
 
 RANGE_OFFSET_TOLERANCE = 0.1
 """m, added to the UWB noise margin: what the self-calibration of the pair offsets
-o_ij (papers/000 section III-C) may be off by, and multipath shortening a range."""
+o_ij (Caluwaerts et al. 2016 section III-C) may be off by, and multipath shortening a range."""
 
 CABLE_NOISE_SIGMAS = 8.0
 """Cable-sensor noise margin in standard deviations of a reading."""

@@ -5,10 +5,15 @@ whose episodes go to a Foxglove WebSocket server (the ``foxglove-sdk`` package, 
 optional extra: ``pip install tensegrity-gym[viewer]``) instead of a bag: the very
 messages a bag gets (ROS 2 types, CDR bytes, ``ros2msg`` schemas), so Foxglove shows a
 live run as it shows a bag. ``gym.make(..., render_mode="foxglove")`` and the
-``tensegrity-gym view`` command use it; the server stops when the env closes.
+``tensegrity-gym view`` command use it; the server stops when the env closes. Clients
+speaking either name of the protocol connect (``foxglove.sdk.v1``, what the SDK's
+server takes, and ``foxglove.websocket.v1``, what Lichtblick and the ws-protocol
+libraries ask for): the public port is a relay (:mod:`hardware.foxglove_relay`) in
+front of the SDK's server on a loopback port.
 
-The header messages (the robot description and its URDF, run info, calibration) are
-sent again every second of run time, so that a viewer that connects late gets them.
+The header messages (the robot description and its URDF, run info, calibration) and
+``/tf_static`` are sent again every second of run time, so that a viewer that connects
+late gets them (what a bag records latched, :data:`hardware.bag.messages.LATCHED_TOPICS`).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from hardware.bag import messages as m
 from hardware.bag.writer import MessageWriter
+from hardware.foxglove_relay import SubprotocolRelay
 from hardware.recording import WriterSink
 from tensegrity_gym.model.checks import check_whole
 from tensegrity_gym.model.samples import seconds_to_ns
@@ -27,7 +33,6 @@ from tensegrity_gym.model.samples import seconds_to_ns
 if TYPE_CHECKING:
     from collections.abc import Mapping
 
-    from hardware.bag.codec import Encoded
     from hardware.recording import Episode
     from tensegrity_gym.model.estimate import Estimate
 
@@ -64,7 +69,8 @@ class _LiveWriter(MessageWriter):
     def __init__(self, sink: FoxgloveSink, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self._sink = sink
-        self._header: list[Encoded] = []
+        # What a bag records latched; a WebSocket has no such thing, hence the repeats.
+        self._header: dict[str, bytes] = {}
         self._header_ns = 0
         self._period_ns = seconds_to_ns(HEADER_PERIOD)
 
@@ -72,8 +78,8 @@ class _LiveWriter(MessageWriter):
         return "the live view"
 
     def _emit(self, topic: str, ns: int, raw: bytes) -> None:
-        if topic in m.HEADER_TOPICS and len(self._header) < len(m.HEADER_TOPICS):
-            self._header.append((topic, raw))  # the first ones: the episode's header
+        if topic in m.LATCHED_TOPICS and topic not in self._header:
+            self._header[topic] = raw  # the first ones: the episode's header, /tf_static
         self._sink.publish(topic, self.codec.topics.types[topic], ns, raw)
 
     def _opened(self, ns: int) -> None:
@@ -82,7 +88,7 @@ class _LiveWriter(MessageWriter):
     def _written(self, ns: int) -> None:
         if ns - self._header_ns >= self._period_ns:
             self._header_ns = ns
-            for topic, raw in self._header:
+            for topic, raw in self._header.items():
                 self._sink.publish(topic, self.codec.topics.types[topic], ns, raw)
 
 
@@ -118,13 +124,8 @@ class FoxgloveSink(WriterSink):
         foxglove = foxglove_module()
         self._foxglove = foxglove
         self._context = foxglove.Context()
-        try:
-            self._server = foxglove.start_server(
-                name="tensegrity-gym", host=host, port=port, context=self._context
-            )
-        except RuntimeError as err:
-            raise ViewerError(f"cannot start the Foxglove server on {host}:{port}: {err}") from None
-        self.port: int = self._server.port
+        self._server, self._relay = _start(foxglove, self._context, host, port)
+        self.port: int = self._relay.port
         self.host = host
         self.url = f"ws://{'localhost' if host == '127.0.0.1' else host}:{self.port}"
         self.speed = speed
@@ -178,12 +179,31 @@ class FoxgloveSink(WriterSink):
         server, self._server = self._server, None
         if server is None:
             return
-        server.stop()
+        server.stop()  # it sends its clients a close frame, through the relay
+        self._relay.close()
         for channel in self._channels.values():
             channel.close()
         self._channels.clear()
         _wait_until_closed(self.host, self.port, STOP_TIMEOUT)
         log.info("Foxglove live view at %s stopped", self.url)
+
+
+def _start(foxglove: Any, context: Any, host: str, port: int) -> tuple[Any, SubprotocolRelay]:
+    """The SDK's server on a free loopback port and the relay in front of it on
+    ``host:port`` (both subprotocol names: :mod:`hardware.foxglove_relay`);
+    :class:`ViewerError` where either cannot listen."""
+    try:
+        server = foxglove.start_server(
+            name="tensegrity-gym", host="127.0.0.1", port=0, context=context
+        )
+    except RuntimeError as err:
+        raise ViewerError(f"cannot start the Foxglove server: {err}") from None
+    try:
+        relay = SubprotocolRelay(server.port, host=host, port=port)
+    except OSError as err:
+        server.stop()
+        raise ViewerError(f"cannot start the Foxglove server on {host}:{port}: {err}") from None
+    return server, relay
 
 
 def _wait_until_closed(host: str, port: int, timeout: float) -> None:

@@ -80,7 +80,7 @@ Face = tuple[int, ...]
 Route = tuple[int, ...]  # candidate indices run one period each from the reset
 Table = dict[Face, int]  # face -> candidate index
 Model = dict[tuple[Face, int], tuple[Face, np.ndarray]]  # see explore
-TRAVEL = 5.0  # m of CoM path the evaluation's runs need (papers/002, table II)
+TRAVEL = 5.0  # m of CoM path the evaluation's runs need (Tong et al. 2024, table II)
 MIN_MOVE = 0.1  # m a gait period the model's turning cycles carry the CoM at least
 CACHE_VERSION = 3
 

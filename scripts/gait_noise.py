@@ -22,7 +22,7 @@ import gymnasium as gym
 import numpy as np
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
-from agents.evaluate import true_progress
+from agents.evaluation.evaluate import true_progress
 
 
 def progress(env: gym.Env[Any, Any], noise: float, seed: int) -> float:

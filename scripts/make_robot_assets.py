@@ -220,7 +220,7 @@ COLORS = [
 
 
 def camera(position: list[float], target: list[float], near: float, far: float) -> dict[str, Any]:
-    """An overhead RGB-D camera like papers/003's, 320x240."""
+    """An overhead RGB-D camera like Lu et al. 2022's, 320x240."""
     return {
         "position": position,
         "target": target,
@@ -324,7 +324,7 @@ def main() -> None:
             "passive_damping": 20.0,
             "pretension": 120.0,
             "motor_speed": 0.3,
-            # papers/002 VI: "the motors are controlled to apply a minimum torque,
+            # Tong et al. 2024 VI: "the motors are controlled to apply a minimum torque,
             # ensuring cables remain under tension and preventing slackness".
             "min_tension": 10.0,
             "sensors": sensors(
@@ -336,7 +336,7 @@ def main() -> None:
             ),
         }
     )
-    # papers/002 VI: "An IMU (VN-100) is attached at the center of the bar with red
+    # Tong et al. 2024 VI: "An IMU (VN-100) is attached at the center of the bar with red
     # endcaps"; the other rods carry none.
     large["sensors"]["imu"] = {**large["sensors"]["imu"], "rods": ["red"]}
     superball = {

@@ -20,10 +20,10 @@ from typing import TYPE_CHECKING, Any
 import gymnasium as gym
 import numpy as np
 
-from agents.evaluate import load_policy
+from agents.evaluation.evaluate import load_policy
 
 if TYPE_CHECKING:
-    from agents.evaluate import LoadedPolicy
+    from agents.evaluation.evaluate import LoadedPolicy
 
 
 def measure(

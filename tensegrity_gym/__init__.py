@@ -5,7 +5,7 @@ Importing the package only registers the env ids; nothing heavy is imported.
 The ids come from a loop over the robot presets and the tasks: for each preset YAML in
 ``tensegrity_gym/model/assets`` (its ``display_name``, say ``ThreeBar``) and each task
 (``Roll``, ``GoTo``), ``tensegrity_gym/ThreeBarRoll-v0``; and where the preset says
-``hardware: true``, ``tensegrity_gym/ThreeBarRollHardware-v0`` through the robot link.
+``hardware: true``, ``tensegrity_gym_hardware/ThreeBarRoll-v0`` through the robot link.
 Adding a robot is adding its YAML file.
 """
 
@@ -18,6 +18,11 @@ import yaml
 from gymnasium.envs.registration import WrapperSpec, register
 
 __version__ = "0.1.0"
+
+NAMESPACE = "tensegrity_gym"
+"""The simulated envs' Gymnasium namespace: ``tensegrity_gym/ThreeBarRoll-v0``."""
+HARDWARE_NAMESPACE = "tensegrity_gym_hardware"
+"""The namespace of the envs that drive a robot over the link (or the emulator)."""
 
 _ENTRY = "tensegrity_gym.envs.factory:make_env"
 # Outermost: whatever fails in the stack gym.make builds, the motors stop.
@@ -71,14 +76,27 @@ def preset_ids() -> dict[str, dict[str, Any]]:
         robot = asset.name[: -len(".yaml")]
         display = head.get("display_name") or "".join(p.capitalize() for p in robot.split("_"))
         for task, (word, _) in TASK_IDS.items():
-            ids[f"tensegrity_gym/{display}{word}-v0"] = {"robot": robot, "task": task}
+            ids[f"{NAMESPACE}/{display}{word}-v0"] = {"robot": robot, "task": task}
             if head.get("hardware") is True:
-                ids[f"tensegrity_gym/{display}{word}Hardware-v0"] = {
+                ids[f"{HARDWARE_NAMESPACE}/{display}{word}-v0"] = {
                     "robot": robot,
                     "task": task,
                     "driver": _HARDWARE_DRIVER,
                 }
     return ids
+
+
+def env_ids(*, hardware: bool | None = False) -> list[str]:
+    """The registered ids of this package's namespaces, sorted: the simulated ones
+    (``hardware=False``), the robot's (``True``) or both (``None``); a lab's own ids
+    registered in these namespaces included."""
+    from gymnasium.envs.registration import registry
+
+    if hardware is None:
+        spaces: tuple[str, ...] = (NAMESPACE, HARDWARE_NAMESPACE)
+    else:
+        spaces = (HARDWARE_NAMESPACE,) if hardware else (NAMESPACE,)
+    return sorted(i for i in registry if i.partition("/")[0] in spaces)
 
 
 for _id, _kwargs in preset_ids().items():

@@ -7,15 +7,16 @@ from typing import TYPE_CHECKING, Any
 import gymnasium as gym
 import pytest
 
-import tensegrity_gym  # noqa: F401  (registers the envs)
+import tensegrity_gym
 
 if TYPE_CHECKING:
     from collections.abc import Callable, Iterator
 
     from hardware.link.process import EmulatorProcess
 
-ENV_IDS = sorted(env_id for env_id in gym.registry if env_id.startswith("tensegrity_gym/"))
-HARDWARE_IDS = [env_id for env_id in ENV_IDS if gym.spec(env_id).nondeterministic]
+ENV_IDS = tensegrity_gym.env_ids(hardware=None)
+"""Every id: the simulated namespace's and the robot's."""
+HARDWARE_IDS = tensegrity_gym.env_ids(hardware=True)
 """Ids of robots on the network: the tests run them against the emulator."""
 
 

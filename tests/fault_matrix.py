@@ -229,7 +229,7 @@ def make_inputs(folder: Path) -> Path:
 # ---------------------------------------------------------------------- rows
 
 ENV = "tensegrity_gym/ThreeBarRoll-v0"
-HW = "tensegrity_gym/ThreeBarRollHardware-v0"
+HW = "tensegrity_gym_hardware/ThreeBarRoll-v0"
 _MAKE = f"import gymnasium as gym, tensegrity_gym\nenv = gym.make({ENV!r}"
 _EMULATOR = (
     "import gymnasium as gym, tensegrity_gym\nfrom hardware.link.process import EmulatorProcess\n"
@@ -401,7 +401,8 @@ FAULTS: tuple[Fault, ...] = (
           "    if term or trunc:\n        env.reset()\nprint('finite', ok)"),
     Fault("a bag with NaN IMU readings", "ok", r"^finite \{'undecodable': [1-9]\d*",
           since="earlier",
-          code="import json\nfrom pathlib import Path\nfrom agents.offline import estimate_bag\n"
+          code="import json\nfrom pathlib import Path\n"
+          "from agents.recordings.offline import estimate_bag\n"
           "[m] = estimate_bag(INPUTS + '/poisoned_imu', 'ukf', Path(OUT) / 'e', progress=False)\n"
           "print('finite' if m['finite'] else 'NOT FINITE', m['skipped_messages'])"),
     Fault("a lossy, jittery, reordering link", "ok", r"^finite 30 of 30$", since="earlier",

@@ -132,7 +132,7 @@ def bags(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 
 
 def _offline(bag: Path, estimator: Estimator) -> list[Estimate]:
-    """``estimator`` over the bag's control periods as agents.offline runs it."""
+    """``estimator`` over the bag's control periods as agents.recordings.offline runs it."""
     backend = ReplayBackend(bag)
     rng = np.random.default_rng(0)
     start = backend.reset(rng)

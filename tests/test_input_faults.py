@@ -127,7 +127,7 @@ def test_make_refuses_a_viewer_port_out_of_range() -> None:
 
 
 def test_identify_refuses_segments_shorter_than_a_period() -> None:
-    from agents.identify import IdentifyError, identify_run
+    from agents.identification.identify import IdentifyError, identify_run
     from hardware.recording import RecordedRun, RecordedStep, hold_command
 
     d = load_robot("three_bar")

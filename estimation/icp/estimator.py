@@ -35,7 +35,7 @@ HEALTH = HealthParams(max_prediction_time=0.0, healthy_when_reinitialised=True)
 
 
 class IcpEstimator:
-    """Rod poses from the RGB-D camera and cable lengths (papers/003).
+    """Rod poses from the RGB-D camera and cable lengths (Lu et al. 2022).
 
     Node velocities are finite differences between frames. A period without a usable
     frame (none, no depth, no colour) keeps the last estimate and reports unhealthy; a

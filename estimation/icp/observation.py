@@ -1,5 +1,5 @@
 """From an RGB-D frame to coloured 3-D points: endcap segmentation by hue, back-projection,
-the depth noise filtering of papers/003 section 4.5, and the ground plane by RANSAC."""
+the depth noise filtering of Lu et al. 2022 section 4.5, and the ground plane by RANSAC."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ __all__ = ["HueRange", "back_project", "endcap_masks", "fit_ground_plane", "hsv"
 @dataclass(frozen=True)
 class HueRange:
     """A colour class: hue within ``width`` degrees of ``hue``, saturation and value above
-    their floors (the HSV range of papers/003 section 4.1)."""
+    their floors (the HSV range of Lu et al. 2022 section 4.1)."""
 
     hue: float
     """Degrees, [0, 360)."""
@@ -56,7 +56,7 @@ def endcap_masks(
     rgb: NDArray[np.uint8], hues: list[HueRange], roi: tuple[int, int, int, int] | None = None
 ) -> NDArray[np.bool_]:
     """(R, H, W) pixels of each rod's colour; ``roi`` (row0, row1, col0, col1) limits the
-    search (papers/003 draws one by hand; by default the whole image is searched).
+    search (Lu et al. 2022 draws one by hand; by default the whole image is searched).
 
     Hue is computed only for the few pixels saturated and bright enough for any class.
     """

@@ -1,4 +1,4 @@
-"""The ICP tracker of papers/003 (Lu et al.): rod poses from an overhead RGB-D camera
+"""The ICP tracker of Lu et al. 2022 (Lu et al.): rod poses from an overhead RGB-D camera
 and the cable-length sensors, each frame a few iterations of a transition step (per-rod
 weighted ICP of endcap model points against the rod's coloured points) and a correction
 step (eq. 2: endcap positions near the transition's, cable lengths near the measured
@@ -36,7 +36,7 @@ Vec: TypeAlias = "NDArray[np.float64]"
 
 @dataclass(frozen=True)
 class IcpParams:
-    """Tracker settings; defaults from papers/003 where it gives them."""
+    """Tracker settings; defaults from Lu et al. 2022 where it gives them."""
 
     max_iterations: int = 4
     """Transition + correction rounds per frame at most (section 4.2; the paper's 6 gave
@@ -54,9 +54,9 @@ class IcpParams:
     """Points sampled on each endcap sphere."""
     interleaved: bool = True
     """Correct after every transition (the proposed method); False: transitions first,
-    one correction at the end (papers/003 baseline 3)."""
+    one correction at the end (Lu et al. 2022 baseline 3)."""
     rigid_shape: bool = False
-    """Baseline 2 of papers/003: the shape from the cable lengths alone, then registered
+    """Baseline 2 of Lu et al. 2022: the shape from the cable lengths alone, then registered
     to the points as one rigid body; no correction step."""
     converged: float = 2e-4
     """An iteration that moves no endcap further than this (m) ends the frame's loop."""
@@ -77,7 +77,7 @@ class IcpParams:
     its points, but not the cables. (The median missed such poses in the benchmark.)"""
     cable_gate: float | None = 0.04
     """A cable whose reading differs from the transition's endcap distance by more (m)
-    is left out of the correction; None keeps every cable (as papers/003)."""
+    is left out of the correction; None keeps every cable (as Lu et al. 2022)."""
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
@@ -351,7 +351,7 @@ class IcpTracker:
     def _turn_rotations(self, nodes: Vec) -> None:
         """Each rod's new orientation: the previous one turned by the smallest rotation
         that takes its old axis onto the new, the rotation with the new axis nearest the
-        old in SO(3) (papers/003 section 4.2)."""
+        old in SO(3) (Lu et al. 2022 section 4.2)."""
         for k, (i, j) in enumerate(self.rod_nodes):
             old = self.rotations[k][:, 2]
             new = (nodes[j] - nodes[i]) / np.linalg.norm(nodes[j] - nodes[i])

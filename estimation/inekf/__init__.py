@@ -1,4 +1,9 @@
-"""The proprioceptive estimator of papers/002: shape reconstruction and invariant EKF."""
+"""The proprioceptive estimator of Tong et al. 2024: shape reconstruction and invariant EKF.
+
+Reference: W. Tong, T.-Y. Lin, J. Mi, Y. Jiang, M. Ghaffari and X. Huang, "Tensegrity
+robot proprioceptive state estimation with geometric constraints", arXiv:2410.24226,
+2024.
+"""
 
 from estimation.inekf.config import InekfConfig
 from estimation.inekf.estimator import InekfEstimator

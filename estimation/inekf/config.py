@@ -26,9 +26,9 @@ BIAS_WALK = 1e-5
 """Random-walk density of both IMU biases (per sqrt(Hz)): a bias that changes slowly over
 a run (the simulator's is constant), so that the filter keeps learning it."""
 CONTACT_SLIP = 0.005
-"""m/s/sqrt(Hz): an endcap's slip in contact while the robot is still; papers/002 table I
+"""m/s/sqrt(Hz): an endcap's slip in contact while the robot is still; Tong et al. 2024 table I
 has 0.05. It grows with the angular rate (:attr:`InekfConfig.slip_per_rate`). On the
-1.45 m robot's five runs (agents.bench_proprio, seeds 0-2, one-off replays) a constant
+1.45 m robot's five runs (agents.benchmarks.proprio, seeds 0-2, one-off replays) a constant
 density drifted 9.5 % on average (0.02; 0.01-0.05 were no better, with capsule rods),
 a density growing with the rate 6.9 % (0.005 + 0.05 per rad/s; 0.002 6.8 %, 0.01 7.2 %)."""
 
@@ -48,7 +48,7 @@ def noise_from_description(description: RobotDescription) -> InekfNoise:
 
 
 PAPER_ROD_LENGTH = 1.45
-"""m: the rods of papers/002's robot, on which the lengths of :data:`PAPER_LENGTHS` hold."""
+"""m: the rods of Tong et al. 2024's robot, on which the lengths of :data:`PAPER_LENGTHS` hold."""
 PAPER_LENGTHS = {
     "contact_std": 0.1,
     "kinematics_std": 0.08,
@@ -56,7 +56,7 @@ PAPER_LENGTHS = {
     "slip_max": 0.05,
 }
 """The defaults of the :class:`InekfConfig` fields that scale with the robot's size, on
-papers/002's 1.45 m rods (m, m, m/s/sqrt(Hz) per rad/s, m/s/sqrt(Hz))."""
+Tong et al. 2024's 1.45 m rods (m, m, m/s/sqrt(Hz) per rad/s, m/s/sqrt(Hz))."""
 
 CONTACT_SOURCES = ("auto", "sensors", "shape")
 """Where contacts come from: the contact sensors (``"sensors"``), the shape and gravity
@@ -65,10 +65,10 @@ CONTACT_SOURCES = ("auto", "sensors", "shape")
 
 @dataclass(frozen=True)
 class InekfConfig:
-    """The contact-aided right-invariant EKF of papers/002 and its shape reconstruction."""
+    """The contact-aided right-invariant EKF of Tong et al. 2024 and its shape reconstruction."""
 
     base_rod: int = 0
-    """The rod whose IMU defines the body frame (papers/002: the red rod)."""
+    """The rod whose IMU defines the body frame (Tong et al. 2024: the red rod)."""
     noise: InekfNoise | None = None
     """The IMU's noise densities and the contacts' slip; None: from the robot's
     description (:func:`noise_from_description`)."""
@@ -80,7 +80,7 @@ class InekfConfig:
     (with the slip above; 1.9 cm shape RMSE either way), 50 Hz no better than 20 at
     twice the cost. With thin rods, rolling endcaps and slid contacts touching down
     again: 10 Hz 9.5 %, 20 Hz 9.7 % on the bench, but in closed loop (the gait driven
-    by the estimates, tests/test_inekf.py) 14 % against 5 % with contact sensors and
+    by the estimates, tests/estimation/test_inekf.py) 14 % against 5 % with contact sensors and
     76 % against 9 % without: 20 Hz, though a solve is a third of the estimator's time."""
     contacts: str = "auto"
     """See :data:`CONTACT_SOURCES`."""
@@ -90,12 +90,12 @@ class InekfConfig:
     contact_std: float | None = None
     """m: standard deviation of an endcap's world position when it touches down, per
     axis (eq. 9: the shape solver gives no Jacobian, so it is a parameter, as in the
-    paper). None: 0.1 m on papers/002's 1.45 m rods, in proportion to the robot's
+    paper). None: 0.1 m on Tong et al. 2024's 1.45 m rods, in proportion to the robot's
     (:meth:`for_robot`; so are the other lengths whose default is None)."""
     kinematics_std: float | None = None
     """m: standard deviation of a contact endcap's body-frame position from the shape,
     per axis (the forward-kinematics measurement noise of eq. 12); None: 0.08 m on the
-    1.45 m rods, about the shape's node error there rolling (tests/test_shape.py); 2 cm
+    1.45 m rods, about the shape's node error there rolling (tests/estimation/test_shape.py); 2 cm
     made the filter trust a wrong shape and drift 10 % instead of 4 % on the forward
     gait."""
     gate_probability: float = 0.9999
@@ -110,7 +110,7 @@ class InekfConfig:
     0.04 7.1 %, 0.07 7.0 %, and no growth below 1 rad/s 8.8 % (the left turn rocks
     slowly and slides)."""
     slip_max: float | None = None
-    """m/s/sqrt(Hz): the most the rate makes of the slip density (None: papers/002's
+    """m/s/sqrt(Hz): the most the rate makes of the slip density (None: Tong et al. 2024's
     constant 0.05 on its 1.45 m rods). A robot shaken by random actions turns fast all
     the time, and an unbounded density let its pose coast on the IMU: on
     ThreeBarRoll-v0, 300 random steps (seeds 1000-1002), the CoM 0.9 and 2.3 m off at
@@ -124,7 +124,7 @@ class InekfConfig:
     variance too)."""
     reanchor_slipped: bool = True
     """A contact the gate refuses has slipped: it touches down again where the shape and
-    the pose put it. On the bench (agents.bench_proprio, seeds 0 and 1) the mean drift
+    the pose put it. On the bench (agents.benchmarks.proprio, seeds 0 and 1) the mean drift
     fell from 10.3 % to 9.5 % with it."""
     rolling_endcaps: bool = True
     """The base rod's endcaps in contact roll with its spin (the gyro's z): on the bench
@@ -154,7 +154,7 @@ class InekfConfig:
 
     def for_robot(self, description: RobotDescription) -> InekfConfig:
         """This config with every length left None set in proportion to the base rod:
-        papers/002's value on its 1.45 m rods times the rod's length over 1.45 m."""
+        Tong et al. 2024's value on its 1.45 m rods times the rod's length over 1.45 m."""
         scale = float(description.rods[self.base_rod].length) / PAPER_ROD_LENGTH
 
         def length(name: str) -> float:

@@ -1,7 +1,7 @@
 """Which endcaps touch the ground: from contact sensors, or from the shape and gravity.
 
 A robot with contact sensors says so itself (:class:`~tensegrity_gym.model.samples.ContactSample`).
-One without them (papers/002's robot used motion capture for it) has the shape in its
+One without them (Tong et al. 2024's robot used motion capture for it) has the shape in its
 body frame and the direction of gravity: on flat ground the endcaps in contact are the
 lowest ones. :class:`ShapeContactDetector` takes the endcaps whose height above the
 lowest is within ``enter`` and keeps them until they rise above ``leave``, so that a
@@ -43,7 +43,7 @@ class ContactThresholds:
     @classmethod
     def for_rod_length(cls, length: float) -> ContactThresholds:
         """Thresholds in proportion to the robot: 1 % and 3 % of a rod's length (1.5 and
-        4.4 cm on a 1.45 m robot). Measured on its forward gait (tests/test_inekf.py):
+        4.4 cm on a 1.45 m robot). Measured on its forward gait (tests/estimation/test_inekf.py):
         1.5/4 cm drifted 16 %, 3/7 cm 23 %, 8/15 cm 20 %: wider thresholds take in
         endcaps that hover, whose corrections pull the pose."""
         return cls(enter=0.01 * length, leave=0.03 * length)

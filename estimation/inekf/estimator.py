@@ -1,11 +1,11 @@
-"""The proprioceptive estimator of papers/002 behind the :class:`Estimator` protocol
+"""The proprioceptive estimator of Tong et al. 2024 behind the :class:`Estimator` protocol
 (``estimator="inekf"``): one IMU, the motor encoders and endcap contacts, nothing
 outside the robot.
 
 Per period, in the samples' time order: each reading of the base rod's IMU propagates
 the right-invariant EKF over the time since the one before (the earlier reading held,
 as an IMU integrates); each encoder reading, at most ``shape_rate`` times a second,
-reconstructs the shape (papers/002 section V); at each encoder or contact reading the
+reconstructs the shape (Tong et al. 2024 section V); at each encoder or contact reading the
 contacts are updated (from the contact sensors, or from the shape and gravity), endcaps
 touching down are added to the state (eq. 9), those lifting off are marginalised
 (eq. 10), and every endcap in contact corrects the state by forward kinematics
@@ -308,7 +308,7 @@ class InekfEstimator:
         spin (gyro z): a sphere of radius r turning by theta about the rod moves its
         centre by theta x (r up). The rods roll about their own axes as the robot tips
         over, and an endcap held fixed made the estimate lag the robot's travel
-        (papers/002's contact model is a point foot); the other rods' spin is not
+        (Tong et al. 2024's contact model is a point foot); the other rods' spin is not
         measured."""
         f = self.filter
         assert f is not None
@@ -362,9 +362,9 @@ class InekfEstimator:
 
         The endcaps on the ground, which gravity puts at one height, are the sensed
         ones, else those the filter holds (from the shape, with hysteresis): with one
-        IMU (papers/002's robot) no other rod's tilt pins the rotation about the base
+        IMU (Tong et al. 2024's robot) no other rod's tilt pins the rotation about the base
         rod, and the three lowest of the last shape (the solver's own guess) let a wrong
-        rotation confirm itself (tests/test_inekf.py: the forward gait without contact
+        rotation confirm itself (tests/estimation/test_inekf.py: the forward gait without contact
         sensors drifted 52 % instead of 11 %)."""
         distances, weights = self.reconstructor.cable_distances(self._rest, self._cables)
         contacts = self._sensed

@@ -1,4 +1,4 @@
-"""The contact-aided right-invariant EKF of papers/002 section IV (Hartley et al., IJRR
+"""The contact-aided right-invariant EKF of Tong et al. 2024 section IV (Hartley et al., IJRR
 2020; the DRIFT framework), with IMU biases: its filter core.
 
 State. ``X`` in SE_{2+K}(3), (5 + K, 5 + K)::
@@ -38,7 +38,7 @@ constant ``H_k = [0, 0, -I, .., I at d_k, .., 0, 0]`` and ``N_k = R_hat cov_k R_
 The gain is the ordinary ``K = P H^T S^-1``, the covariance update the Joseph form.
 
 The kernels are numba-compiled (``cache=True``): a 24 x 24 covariance is too small for
-numpy's per-call overhead (measured in :mod:`agents.bench_inekf`).
+numpy's per-call overhead (measured in :mod:`agents.benchmarks.inekf`).
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ _POSE_ROWS = _POSE_COLUMNS[:, None]
 @dataclass(frozen=True)
 class InekfNoise:
     """Continuous-time noise densities (standard deviation per sqrt(Hz)); defaults from
-    papers/002 table I.
+    Tong et al. 2024 table I.
 
     A sensor sampled every dt seconds has a per-sample standard deviation of the density
     over sqrt(dt); a random walk grows by the density times sqrt(dt) in dt.

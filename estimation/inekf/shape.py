@@ -1,4 +1,4 @@
-"""Shape reconstruction of papers/002 section V: the endcaps in the body frame from the
+"""Shape reconstruction of Tong et al. 2024 section V: the endcaps in the body frame from the
 cable lengths, the rod lengths and gravity.
 
 The body frame is the base rod's (its IMU's): origin at the rod's centre, z from its
@@ -10,7 +10,7 @@ are fitted by Levenberg-Marquardt (compiled with numba) to
 - the endcap-to-endcap distances the encoders and cable-length sensors imply (15a),
   each one-sided past a margin: a cable may be slack, shorter than its target
   (two-sided where the motor holds a minimum tension and so reels in any slack, as on
-  papers/002's robot: the description's ``motor.min_tension``);
+  Tong et al. 2024's robot: the description's ``motor.min_tension``);
 - gravity: the endcaps in contact lie at one height along ``up`` (flat ground). The
   cable distances say nothing about the structure's rotation about body z (the base
   rod can spin about its own axis); the contacts fix it. Without two contacts, one of
@@ -1054,7 +1054,7 @@ class ShapeReconstructor:
         if self._ends is None and (config.geometric or config.chirality):
             raise ValueError(
                 f"{d.name!r} is not a 3-bar prism: ShapeConfig.geometric and .chirality "
-                "(papers/002 eq. 15g-l) do not apply to it; set them False"
+                "(Tong et al. 2024 eq. 15g-l) do not apply to it; set them False"
             )
         self._layout()
         # The resting pose with every rod at its length exactly, as the solver builds shapes

@@ -21,12 +21,13 @@ class UkfConfig:
     """
 
     sigma_points: SigmaPointParams = field(default_factory=lambda: SigmaPointParams(alpha=0.3))
-    """Spread of the sigma points. Wider than papers/000's alpha = 0.0139, which puts them
+    """Spread of the sigma points. Wider than Caluwaerts et al. 2016's alpha = 0.0139, which puts
+    them
     within 0.08 standard deviations of the mean with weights near -5000 and 70: a kink of
     the model between them (a cable going slack, a rod tipping over an edge) then moves
     the predicted mean by centimetres. With the AHRS frame's alignment estimated, the
     robot's tilt is uncertain in its first seconds, and at 0.0139 single runs diverged
-    (docs/sim_to_real.md); at 0.3 none did, and the NEES is otherwise the same."""
+    (docs/results/sim_to_real.md); at 0.3 none did, and the NEES is otherwise the same."""
     model: SpringMassParams = field(default_factory=SpringMassParams)
     position_noise: float = 0.01
     """Process noise on node positions: std per sqrt(s), in rod lengths."""
@@ -50,7 +51,7 @@ class UkfConfig:
     in rod lengths. Per-node noise alone leaves the CoM ``sqrt(n)`` times surer than a
     node, where a rolling robot's model errs most in the CoM. Off by default: at 0.02
     the 3-bar's CoM was estimated consistently, but the filter diverged in two of three
-    long rolls with the self-calibrated UWB (docs/sim_to_real.md)."""
+    long rolls with the self-calibrated UWB (a one-off run; no results page holds it)."""
     node_noise_scale: tuple[float, ...] | None = None
     """Per node (n,), a factor on both process noises: where the model is known to be
     rougher (an endcap carrying a payload, a worn cable's ends). None: 1 for every node."""

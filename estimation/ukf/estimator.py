@@ -1,4 +1,5 @@
-"""The UKF of papers/000 as an :class:`Estimator`: samples and commands in, estimate out.
+"""The UKF of Caluwaerts et al. 2016 as an :class:`Estimator`: samples and commands in, estimate
+out.
 
 Each control period the filter predicts the spring-mass net forward with the motor
 encoders' rest lengths as its input, then corrects it with what arrived: rod axes from
@@ -167,7 +168,7 @@ def _ranging(
 
 
 class UkfEstimator:
-    """The unscented Kalman filter over the spring-mass net (papers/000, section IV).
+    """The unscented Kalman filter over the spring-mass net (Caluwaerts et al. 2016, section IV).
 
     Args:
         config: tuning; defaults work for the presets.

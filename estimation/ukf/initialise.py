@@ -47,11 +47,10 @@ class InitialFit:
 
 
 def _wahba(template: NDArray[np.float64], measured: NDArray[np.float64]) -> Rotation:
-    """The rotation R minimising sum |measured_k - R template_k|^2, rows unit vectors."""
-    H = measured.T @ template
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    return Rotation.from_matrix(U @ D @ Vt)
+    """The rotation R minimising sum |measured_k - R template_k|^2, rows unit vectors
+    (Wahba's problem; SciPy solves it by SVD, the Kabsch algorithm)."""
+    rotation, _ = Rotation.align_vectors(measured, template)
+    return rotation
 
 
 def fit_initial_shape(

@@ -6,7 +6,7 @@ Five kinds of row, each a function of the node positions alone:
   orientation of that rod gives it (its body z axis in the AHRS's frame: the world's
   turned by the frames' alignment where the state carries it), three rows a rod;
 - UWB range: the distance between two modules plus the pair's offset o_ij
-  (papers/000 eq. 6-7); a robot module sits ``module_offset`` from its endcap toward
+  (Caluwaerts et al. 2016 eq. 6-7); a robot module sits ``module_offset`` from its endcap toward
   the rod centre, an anchor at its surveyed position;
 - cable length: an on-board stretch sensor's endcap-to-endcap distance;
 - rod length: a pseudo-measurement that the rod keeps its length;

@@ -20,7 +20,8 @@ class CholeskyError(np.linalg.LinAlgError):
 
 @dataclass(frozen=True)
 class SigmaPointParams:
-    """alpha, beta, kappa of the scaled unscented transform; defaults from papers/000."""
+    """alpha, beta, kappa of the scaled unscented transform; defaults from Caluwaerts et al.
+    2016."""
 
     alpha: float = 0.0139
     beta: float = 2.0

@@ -1,4 +1,4 @@
-"""The spring-mass net of papers/000 section IV-A, batched over sigma points.
+"""The spring-mass net of Caluwaerts et al. 2016 section IV-A, batched over sigma points.
 
 Point masses at the nodes (half a rod each), members that exert linear stiffness and
 damping along their axis (cables unilateral, rods as stiff bilateral members), flat
@@ -112,15 +112,7 @@ class KernelArrays(NamedTuple):
 
 class Kernel(Protocol):
     """Another implementation of the model's equations for :meth:`SpringMassModel.propagate`
-    (the benchmark's plain numpy one): advances ``states`` in place.
-
-    Args:
-        states: (S, 6 n), positions then velocities of each state.
-        n_steps: substeps; h: the length of each (s).
-        rest: (2, M), every member's rest length (m) at the start and at the end of the
-            interval, interpolated linearly at the middle of each substep.
-        arrays: the model's parameters.
-    """
+    (the benchmark's plain numpy one): advances ``states`` in place."""
 
     def __call__(
         self,
@@ -129,7 +121,17 @@ class Kernel(Protocol):
         h: float,
         rest: NDArray[np.float64],
         arrays: KernelArrays,
-    ) -> None: ...
+    ) -> None:
+        """Advance ``states`` in place.
+
+        Args:
+            states: (S, 6 n), positions then velocities of each state.
+            n_steps: substeps.
+            h: the length of each substep (s).
+            rest: (2, M), every member's rest length (m) at the start and at the end of
+                the interval, interpolated linearly at the middle of each substep.
+            arrays: the model's parameters.
+        """
 
 
 class _Constant:

@@ -1,4 +1,4 @@
-"""UWB self-calibration (papers/000 III-C): anchor positions and pair offsets from the
+"""UWB self-calibration (Caluwaerts et al. 2016 III-C): anchor positions and pair offsets from the
 uncorrected ranges of a robot moving about, without any anchor measured by hand.
 
 :func:`calibrate_ranges` takes ``(t, module_i, module_j, range)`` rows,

@@ -1,4 +1,5 @@
-"""The calibrator: uncorrected UWB ranges in, anchors and offsets out (papers/000 III-C).
+"""The calibrator: uncorrected UWB ranges in, anchors and offsets out (Caluwaerts et al. 2016
+III-C).
 
 :func:`calibrate_ranges` works on arrays, so that a lab can calibrate ranges its own
 hardware logged; :func:`calibrate_samples` on the ``UwbRangeSample`` a bag or a

@@ -16,7 +16,7 @@ class CalibrationConfig:
     """
 
     min_anchor_ranges: int = 4
-    """The indicator alpha of papers/000 eq. 9: a module at a sample counts only with at
+    """The indicator alpha of Caluwaerts et al. 2016 eq. 9: a module at a sample counts only with at
     least this many anchors ranged."""
     max_samples: int = 1000
     """Samples the final solve uses at most, drawn spread over the run (the paper used

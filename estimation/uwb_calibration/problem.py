@@ -1,4 +1,4 @@
-"""The joint least-squares problem of papers/000 eq. 8-9, with bar-length terms.
+"""The joint least-squares problem of Caluwaerts et al. 2016 eq. 8-9, with bar-length terms.
 
 Unknowns: the anchor positions N^anchor (the coordinates the gauge leaves free), one
 offset o_ij per module pair (robot-anchor and robot-robot), the offsets' common mean

@@ -64,7 +64,7 @@ def residual_stats(
 
 @dataclass(frozen=True)
 class CalibrationResult:
-    """A UWB self-calibration (papers/000 III-C), in the floor frame.
+    """A UWB self-calibration (Caluwaerts et al. 2016 III-C), in the floor frame.
 
     **Frame.** ``anchors`` are in the floor frame: z up, z = 0 the floor the robot's
     endcaps rest on (an endcap centre touching it is at its radius), the origin on the
@@ -92,7 +92,7 @@ class CalibrationResult:
     anchor_stats: tuple[ResidualStats, ...]
     """Per anchor, its ranges' residuals."""
     pair_stats: tuple[tuple[ResidualStats, ...], ...]
-    """Per anchor, per robot module: the pair's residuals, [A][n]."""
+    """Per anchor, per robot module: the pair's residuals, ``[A][n]``."""
     robot_pair_count: NDArray[np.intp]
     """(n, n) robot-robot ranges in the solve, per pair (symmetric)."""
     n_samples: int

@@ -2,7 +2,7 @@
 
 Module ids follow :class:`~tensegrity_gym.model.samples.UwbRangeSample`: 0..n-1 are the
 robot's endcap modules (n = ``n_nodes``), n..n+A-1 the fixed anchors. A row is one
-uncorrected range m_{j,i} of papers/000 eq. 6-7 (true distance + o_ij + noise).
+uncorrected range m_{j,i} of Caluwaerts et al. 2016 eq. 6-7 (true distance + o_ij + noise).
 """
 
 from __future__ import annotations

@@ -3,12 +3,14 @@
 
 Standard types carry what they can (sensor_msgs/Imu, MagneticField, JointState, Image,
 CameraInfo, geometry_msgs/PoseArray, std_msgs/String); a few custom ``tensegrity_msgs``
-types carry the rest. What ROS viewers draw (``/tf``, the robot as markers, a URDF on
-``/robot_description``) is written beside them (:data:`VIEW_TOPICS`); readers pass
-over it. The sensor topics are declared with their sample kinds
-(:mod:`hardware.bag.kinds`); their names come from the robot description (rod names),
-so a robot's own bag needs nothing of this package to be readable here. docs/recordings.md
-holds the same table for people who write bags themselves.
+types carry the rest. What ROS viewers draw (``/tf``, ``/tf_static``, the robot as
+markers, a URDF on ``/robot_description``) is written beside them (:data:`VIEW_TOPICS`);
+readers pass over it. What is sent once (the header, ``/tf_static``) is recorded
+latched (:data:`LATCHED_TOPICS`, :data:`LATCHED_QOS`). The sensor topics are declared
+with their sample kinds (:mod:`hardware.bag.kinds`); their names come from the robot
+description (rod names), so a robot's own bag needs nothing of this package to be
+readable here. docs/recordings.md holds the same table for people who write bags
+themselves.
 
 ``sensor_msgs/Imu`` and ``sensor_msgs/MagneticField`` (most of a run's messages) are
 encoded and decoded by hand: ``struct`` on the CDR bytes is several times faster than
@@ -22,6 +24,14 @@ from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from rosbags.interfaces import (
+    Qos,
+    QosDurability,
+    QosHistory,
+    QosLiveliness,
+    QosReliability,
+    QosTime,
+)
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from tensegrity_gym.model.samples import seconds_to_ns
@@ -35,8 +45,11 @@ __all__ = [
     "DESCRIPTION_YAML_TOPIC",
     "FIXED_TOPICS",
     "HEADER_TOPICS",
+    "LATCHED_QOS",
+    "LATCHED_TOPICS",
     "MARKERS_TOPIC",
     "NIS_TOPIC",
+    "TF_STATIC_TOPIC",
     "TF_TOPIC",
     "VIEW_TOPICS",
     "Raw",
@@ -81,6 +94,7 @@ carry the YAML here, and readers still take it."""
 DESCRIPTION_YAML_TOPIC = "/tensegrity/robot_description_yaml"
 """The robot description as this package reads it: YAML."""
 TF_TOPIC = "/tf"
+TF_STATIC_TOPIC = "/tf_static"
 MARKERS_TOPIC = "/tensegrity/markers"
 NIS_TOPIC = "/estimate/nis"
 RUN_INFO_TOPIC = "/tensegrity/run_info"
@@ -118,13 +132,34 @@ FIXED_TOPICS: dict[str, tuple[str, str]] = {
     ESTIMATE_POSES_TOPIC: (POSE_ARRAY, "estimated rod poses"),
     ESTIMATE_STATE_TOPIC: (STATE, "the estimator's output"),
     TF_TOPIC: (TF, "rod frames under world: truth/ROD and estimate/ROD (optional)"),
+    TF_STATIC_TOPIC: (TF, "fixed frames: camera under world, endcaps under their rods"),
     MARKERS_TOPIC: (MARKER_ARRAY, "rods, endcaps, cables by tension, ghost, anchors, goal"),
     NIS_TOPIC: (FLOAT64, "the estimator's latest normalised innovation squared per row"),
 }
 
-VIEW_TOPICS = frozenset({TF_TOPIC, MARKERS_TOPIC, NIS_TOPIC})
-"""What only viewers read: written at the control rate where a recording asks for it,
-passed over by every reader here."""
+VIEW_TOPICS = frozenset({TF_TOPIC, TF_STATIC_TOPIC, MARKERS_TOPIC, NIS_TOPIC})
+"""What only viewers read: written where a recording asks for it (``/tf_static`` once,
+the others at the control rate), passed over by every reader here."""
+
+LATCHED_TOPICS = frozenset({*HEADER_TOPICS, TF_STATIC_TOPIC})
+"""What is sent once, at the start: recorded with :data:`LATCHED_QOS`, so that
+``ros2 bag play`` offers it to subscribers that join later (as robot_state_publisher
+offers ``/robot_description`` and tf2's static broadcaster ``/tf_static``)."""
+
+_INFINITE = QosTime(9_223_372_036, 854_775_807)  # rmw's "infinite" duration, as rosbag2 writes it
+LATCHED_QOS = Qos(
+    QosHistory.KEEP_LAST,
+    1,
+    QosReliability.RELIABLE,
+    QosDurability.TRANSIENT_LOCAL,
+    _INFINITE,
+    _INFINITE,
+    QosLiveliness.AUTOMATIC,
+    _INFINITE,
+    False,
+)
+"""ROS 2's latched profile: keep last 1, reliable, transient local (the bag's
+``offered_qos_profiles`` of a topic in :data:`LATCHED_TOPICS`)."""
 
 
 @cache

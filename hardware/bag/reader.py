@@ -51,20 +51,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from rosbags.rosbag2 import ReaderError
+import yaml
 
 from hardware.bag import messages as m
 from hardware.bag.assembler import SampleAssembler
 from hardware.bag.codec import MessageError, RobotCodec, description_yaml, run_info_from_text
 from hardware.bag.kinds import fixed_topic_types
-from hardware.bag.salvage import (
-    MAGIC,
-    LostSpan,
-    SalvagingMcap,
-    mcap_walk,
-    open_indexed,
-    open_recovered,
-)
+from hardware.bag.salvage import LostSpan, McapBag, McapFile, Topic
+from hardware.bag.sqlite_bag import Sqlite3Bag, is_sqlite3_bag
 from hardware.recording import RecordedRun, RecordedStep, hold_command
 from tensegrity_gym.model.description import DescriptionError, RobotDescription, loads_robot
 from tensegrity_gym.model.samples import (
@@ -75,7 +69,6 @@ if TYPE_CHECKING:
     from collections.abc import Iterator
 
     from numpy.typing import NDArray
-    from rosbags.interfaces import Connection
 
     from tensegrity_gym.model.estimate import Estimate
     from tensegrity_gym.model.protocols import SensorCalibration
@@ -113,36 +106,66 @@ def find_bags(path: str | Path) -> list[Path]:
 # ---------------------------------------------------------------------- opening
 
 
-def _open_storage(path: Path) -> tuple[Any, list[SalvagingMcap], bool]:
-    """(an open rosbags reader, its MCAP storages, whether the bag was recovered from a
-    cut-off write).
+def _metadata(path: Path) -> dict[str, Any]:
+    """The ``rosbag2_bagfile_information`` of the bag folder ``path``; empty where it has
+    no ``metadata.yaml`` or one that does not read (the ``.mcap`` file says the rest)."""
+    try:
+        doc = yaml.safe_load((path / "metadata.yaml").read_text())
+    except (OSError, ValueError, yaml.YAMLError):
+        return {}
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    return info if isinstance(info, dict) else {}
 
-    Any failure inside rosbags (it raises many kinds on damaged bytes) becomes BagError.
-    """
-    mcaps = [path] if path.is_file() else sorted(p for p in path.glob("*.mcap") if p.is_file())
-    if (path.is_dir() and (path / "metadata.yaml").exists()) or path.is_file():
+
+def _bag_files(path: Path) -> tuple[list[Path], dict[tuple[str, str], str]]:
+    """The ``.mcap`` files of the bag at ``path``, and (topic, type) -> type hash where
+    ``metadata.yaml`` gives them."""
+    if path.is_file():
+        return [path], {}
+    info = _metadata(path)
+    storage = info.get("storage_identifier", "mcap")
+    if isinstance(storage, str) and storage not in ("mcap", "sqlite3"):
+        raise BagError(f"{path}: {storage!r} storage; MCAP and sqlite3 bags are read")
+    names = info.get("relative_file_paths")
+    listed = [path / n for n in names if isinstance(n, str)] if isinstance(names, list) else []
+    mcaps = [p for p in listed if p.is_file()]
+    if not mcaps:
+        mcaps = sorted(p for p in path.glob("*.mcap") if p.is_file())
+        if len(mcaps) != 1:
+            raise BagError(
+                f"{path}: no metadata.yaml naming its files and {len(mcaps)} .mcap files; "
+                "cannot tell which to read"
+            )
+    digests = {}
+    topics = info.get("topics_with_message_count")
+    for t in topics if isinstance(topics, list) else []:
+        meta = t.get("topic_metadata") if isinstance(t, dict) else None
+        if isinstance(meta, dict) and isinstance(meta.get("type_description_hash"), str):
+            digests[(str(meta.get("name")), str(meta.get("type")))] = meta["type_description_hash"]
+    return mcaps, digests
+
+
+def _open_storage(path: Path) -> McapBag | Sqlite3Bag:
+    """The bag at ``path``: an MCAP bag opened chunk by chunk (see
+    :mod:`hardware.bag.salvage`), or a sqlite3 one (:mod:`hardware.bag.sqlite_bag`)."""
+    if is_sqlite3_bag(path, _metadata(path).get("storage_identifier")):
         try:
-            reader, storages = open_indexed(path)
-            return reader, storages, False
-        except Exception as err:
-            if len(mcaps) != 1 or not mcaps[0].name.endswith(".mcap"):
-                raise BagError(f"{path}: cannot open the bag: {err}") from None
-            log.warning("%s: %s; reading what was written before the damage", path, err)
-    if len(mcaps) != 1:
-        raise BagError(
-            f"{path}: no metadata.yaml and {len(mcaps)} .mcap files; cannot tell which to read"
-        )
+            return Sqlite3Bag(path)
+        except ValueError as err:
+            raise BagError(f"{path}: cannot open the sqlite3 bag: {err}") from None
+    files, digests = _bag_files(path)
+    opened: list[McapFile] = []
     try:
-        walk = mcap_walk(mcaps[0])
-    except OSError as err:
-        raise BagError(f"{mcaps[0]}: cannot read: {err}") from None
-    if walk.end <= len(MAGIC):
-        raise BagError(f"{mcaps[0]}: not an MCAP file, or cut off before its first record")
-    try:
-        storage = open_recovered(mcaps[0], walk)
-    except Exception as err:
-        raise BagError(f"{mcaps[0]}: cannot recover the bag: {err}") from None
-    return storage, [storage], True
+        for f in files:
+            opened.append(McapFile(f, digests))
+    except (OSError, ValueError) as err:
+        for g in opened:
+            g.close()
+        raise BagError(f"{path}: cannot open the bag: {err}") from None
+    bag = McapBag(opened)
+    if bag.recovered:
+        log.info("%s: no index (a cut-off recording?); read up to its last whole record", path)
+    return bag
 
 
 # ---------------------------------------------------------------------- periods
@@ -193,14 +216,14 @@ class BagReader:
         self._warned: set[tuple[str, str]] = set()
         self._lost: dict[tuple[str, int], LostSpan] = {}
         self._counted: set[tuple[str, int]] = set()  # lost spans in this pass's skips
-        self._storage, storages, self.recovered = _open_storage(self.path)
+        self._storage: McapBag | Sqlite3Bag | None = _open_storage(self.path)
+        self.recovered = self._storage.recovered
         try:
-            self._known_lost = [span for s in storages for span in s.known_lost]
-            for storage in storages:
-                storage.on_damage = self._damaged
+            self._known_lost = self._storage.known_lost
+            self._storage.set_on_damage(self._damaged)
             for span in self._known_lost:
                 self._damaged(span)
-            self._connections: list[Connection] = list(self._storage.connections)
+            self._connections: list[Topic] = list(self._storage.topics)
             self._check_types(fixed_topic_types())
             header = self._read_header()
             self.description = self._description(header, description)
@@ -218,10 +241,7 @@ class BagReader:
     def close(self) -> None:
         storage, self._storage = self._storage, None
         if storage is not None:
-            try:
-                storage.close()
-            except (ReaderError, OSError, AssertionError):  # already closed
-                pass
+            storage.close()
 
     def __enter__(self) -> BagReader:
         return self
@@ -230,12 +250,11 @@ class BagReader:
         self.close()
 
     def _messages(self, topics: set[str] | None = None) -> Iterator[tuple[str, int, bytes]]:
-        conns = [c for c in self._connections if topics is None or c.topic in topics]
-        if not conns:
+        names = {c.topic for c in self._connections if topics is None or c.topic in topics}
+        if not names or self._storage is None:
             return
         try:
-            for conn, ns, raw in self._storage.messages(conns):
-                yield conn.topic, ns, raw
+            yield from self._storage.messages(names)
         except BagError:
             raise
         except Exception as err:
@@ -344,11 +363,9 @@ class BagReader:
     def _first_second(self) -> int:
         """The bag's first log time (ns, as its index or a scan says), floored to a
         whole second; 0 for a bag without messages."""
-        storage: Any = self._storage
-        meta = storage.metadata if isinstance(storage, SalvagingMcap) else storage.storage.metadata
-        if not meta.message_count:
+        if self._storage is None or not self._storage.message_count:
             return 0
-        return int(meta.start_time) // 1_000_000_000 * 1_000_000_000
+        return self._storage.start_ns // 1_000_000_000 * 1_000_000_000
 
     # ------------------------------------------------------------------ facts
 

@@ -6,6 +6,18 @@ markers on ``/tensegrity/markers``, for one instant of a run.
 its centre, z along it), as on ``/ground_truth/rod_poses`` and ``/estimate/rod_poses``.
 Each tree's transforms carry its own stamp (the truth's, the estimate's time).
 
+``/tf_static`` (``tf2_msgs/TFMessage``, recorded latched: transient local) holds, once
+at the start, the frames that never move relative to their parent:
+
+- ``camera`` under ``world``: the calibration's camera pose, the frame of the camera
+  images and ``/camera/camera_info`` (z along the view, as ROS optical frames);
+- ``<tree>/<node>`` under ``<tree>/<rod>`` for both trees: each endcap's centre
+  (the robot's nodes, where its UWB modules sit) at ``-length/2`` (the rod's first node)
+  and ``+length/2`` (its second) along the rod's z, no rotation: as the URDF's endcaps.
+
+What a ROS user gets with them: the camera's images placed in the 3D view, and TF
+lookups of each endcap (``tf2_echo world truth/n0``) without the robot description.
+
 ``/tensegrity/markers`` (``visualization_msgs/MarkerArray``, frame ``world``) starts
 with a DELETEALL, then draws, in namespaces ``truth/...`` and ``estimate/...``:
 
@@ -30,6 +42,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from hardware.bag import messages as m
+from hardware.bag.codec import CAMERA_FRAME
+from tensegrity_gym.model.lie import matrix_to_quat
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -40,7 +54,14 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.estimate import Estimate
     from tensegrity_gym.model.samples import GroundTruth
 
-__all__ = ["ESTIMATE_TREE", "TRUTH_TREE", "WORLD_FRAME", "RobotScene", "RodPoses", "rod_frame"]
+__all__ = [
+    "ESTIMATE_TREE",
+    "TRUTH_TREE",
+    "WORLD_FRAME",
+    "RobotScene",
+    "RodPoses",
+    "rod_frame",
+]
 
 WORLD_FRAME = "world"
 TRUTH_TREE = "truth"
@@ -159,26 +180,56 @@ class RobotScene:
             (m.MARKERS_TOPIC, self.codec.serialize(array, m.MARKER_ARRAY)),
         ]
 
+    def encode_static(self, t: float, camera_pose: NDArray[np.float64]) -> list[Encoded]:
+        """``/tf_static`` stamped at sample time ``t`` (s): the camera under ``world``
+        (``camera_pose``, camera to world, (4, 4); left out where not finite) and every
+        endcap under its rod in both trees (see the module docstring)."""
+        d = self.codec.description
+        pose = np.asarray(camera_pose, dtype=np.float64)
+        transforms = []
+        if np.all(np.isfinite(pose)):
+            quat = matrix_to_quat(pose[:3, :3])
+            transforms.append(self._transform(t, WORLD_FRAME, CAMERA_FRAME, pose[:3, 3], quat))
+        identity = np.array([0.0, 0.0, 0.0, 1.0])
+        for tree in (TRUTH_TREE, ESTIMATE_TREE):
+            for rod in d.rods:
+                for node, z in zip(rod.nodes, (-0.5 * rod.length, 0.5 * rod.length), strict=True):
+                    child = rod_frame(tree, d.nodes[node].name)
+                    offset = np.array([0.0, 0.0, z])
+                    parent = rod_frame(tree, rod.name)
+                    transforms.append(self._transform(t, parent, child, offset, identity))
+        tf = self._types[m.TF](transforms=transforms)
+        return [(m.TF_STATIC_TOPIC, self.codec.serialize(tf, m.TF))]
+
     def _transforms(self, tree: str, poses: RodPoses) -> list[Any]:
-        t = self._types
-        out = []
-        for rod, p, q in zip(self.codec.rod_names, poses.centres, poses.quaternions, strict=True):
-            transform = t["geometry_msgs/msg/Transform"](
-                translation=t["geometry_msgs/msg/Vector3"](
-                    x=float(p[0]), y=float(p[1]), z=float(p[2])
-                ),
-                rotation=t["geometry_msgs/msg/Quaternion"](
-                    x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])
-                ),
-            )
-            out.append(
-                t["geometry_msgs/msg/TransformStamped"](
-                    header=self.codec.header(poses.t, WORLD_FRAME),
-                    child_frame_id=rod_frame(tree, rod),
-                    transform=transform,
-                )
-            )
-        return out
+        names = self.codec.rod_names
+        return [
+            self._transform(poses.t, WORLD_FRAME, rod_frame(tree, rod), p, q)
+            for rod, p, q in zip(names, poses.centres, poses.quaternions, strict=True)
+        ]
+
+    def _transform(
+        self,
+        t: float,
+        parent: str,
+        child: str,
+        xyz: NDArray[np.float64],
+        quat: NDArray[np.float64],
+    ) -> Any:
+        """A geometry_msgs/TransformStamped at sample time ``t`` (s): ``child`` at
+        ``xyz`` (m), (3,), turned by ``quat`` (x, y, z, w), (4,), in ``parent``."""
+        types = self._types
+        transform = types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](
+                x=float(xyz[0]), y=float(xyz[1]), z=float(xyz[2])
+            ),
+            rotation=types["geometry_msgs/msg/Quaternion"](
+                x=float(quat[0]), y=float(quat[1]), z=float(quat[2]), w=float(quat[3])
+            ),
+        )
+        return types["geometry_msgs/msg/TransformStamped"](
+            header=self.codec.header(t, parent), child_frame_id=child, transform=transform
+        )
 
     def _robot_markers(self, t: float, tree: str, poses: RodPoses, alpha: float) -> list[Any]:
         """One tree's rods, endcaps and cables."""

@@ -13,16 +13,22 @@ replayed bag recorded again has its original stamps.
 
 What ROS viewers draw (``/tf``, ``/tensegrity/markers``: :mod:`hardware.bag.scene`) is
 written by :meth:`MessageWriter.write_scene` where the writer was made with
-``markers=True``. :class:`MessageWriter` is the part every run's stream shares, the bag
-and the live view (:mod:`hardware.viewer`): the header first, then messages in time order.
+``markers=True``; ``/tf_static`` then follows the header, once. The header topics and
+``/tf_static`` are recorded latched (transient local: :data:`messages.LATCHED_QOS`),
+as ROS 2 publishes them, so ``ros2 bag play`` hands them to late subscribers.
+:class:`MessageWriter` is the part every run's stream shares, the bag and the live
+view (:mod:`hardware.viewer`): the header first, then messages in time order.
 """
 
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, BinaryIO
 
-from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+import yaml
+from mcap.writer import CompressionType, Writer
 
 from hardware.bag import messages as m
 from hardware.bag.codec import RobotCodec
@@ -31,12 +37,11 @@ from tensegrity_gym.model.samples import seconds_to_ns
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Mapping
-    from pathlib import Path
     from types import TracebackType
 
     from numpy import float64
     from numpy.typing import NDArray
-    from rosbags.interfaces import Connection
+    from rosbags.interfaces import Qos
 
     from hardware.bag.codec import Encoded
     from tensegrity_gym.model.description import RobotDescription
@@ -44,9 +49,12 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import GroundTruth, Sample
 
-__all__ = ["BagWriter", "MessageWriter"]
+__all__ = ["BagWriter", "MessageWriter", "qos_dicts"]
 
 log = logging.getLogger(__name__)
+
+CHUNK_SIZE = 1 << 20
+"""Bytes of records at which a chunk closes between flushes (rosbags' and ROS 2's size)."""
 
 
 class MessageWriter:
@@ -64,8 +72,8 @@ class MessageWriter:
             ``control_period`` (s). Written as YAML.
         clock_origin_ns: the robot-clock ns of sample time 0 (the source backend's
             ``clock_origin_ns``): stamps and log times are written as this plus ``t``.
-        markers: encode :meth:`write_scene`'s ``/tf`` and ``/tensegrity/markers``;
-            False: it writes nothing.
+        markers: encode :meth:`write_scene`'s ``/tf`` and ``/tensegrity/markers``, and
+            ``/tf_static`` after the header; False: none of them.
     """
 
     def __init__(
@@ -107,7 +115,10 @@ class MessageWriter:
         if self._last_ns is None:  # the header messages open the run, at its first time
             self._last_ns = ns
             self._opened(ns)
-            self._write(self.codec.encode_header(self._calibration, self._run_info, t), t)
+            header = self.codec.encode_header(self._calibration, self._run_info, t)
+            if self.scene is not None:  # the fixed frames, once, as a latched topic is
+                header = [*header, *self.scene.encode_static(t, self._calibration.camera_pose)]
+            self._write(header, t)
         ns = max(ns, self._last_ns)
         for topic, raw in messages:
             self._emit(topic, ns, raw)
@@ -151,9 +162,46 @@ class MessageWriter:
             self._write([self.codec.encode_float(m.NIS_TOPIC, nis)], t)
 
 
+def qos_dicts(profiles: Iterable[Qos]) -> list[dict[str, Any]]:
+    """QoS profiles as ROS 2 (Jazzy, bag version 9) writes them in ``metadata.yaml``."""
+    return [
+        {
+            "history": q.history.name.lower(),
+            "depth": q.depth,
+            "reliability": q.reliability.name.lower(),
+            "durability": q.durability.name.lower(),
+            "deadline": {"sec": q.deadline.sec, "nsec": q.deadline.nsec},
+            "lifespan": {"sec": q.lifespan.sec, "nsec": q.lifespan.nsec},
+            "liveliness": q.liveliness.name.lower(),
+            "liveliness_lease_duration": {
+                "sec": q.liveliness_lease_duration.sec,
+                "nsec": q.liveliness_lease_duration.nsec,
+            },
+            "avoid_ros_namespace_conventions": q.avoid_ros_namespace_conventions,
+        }
+        for q in profiles
+    ]
+
+
+@dataclass
+class _Topic:
+    """One recorded topic: its MCAP channel and what ``metadata.yaml`` says of it."""
+
+    channel: int
+    msgtype: str
+    digest: str
+    qos: list[dict[str, Any]]
+    count: int = 0
+
+
 class BagWriter(MessageWriter):
     """Writes one run to a bag (see :class:`MessageWriter`). Use as a context manager,
     or call :meth:`close`.
+
+    The ``.mcap`` file is written with mcap's own writer in the ``ros2`` profile, as
+    ``ros2 bag record`` writes it: a ``ros2msg`` schema per message type, a ``cdr``
+    channel per topic with its ``offered_qos_profiles`` in the channel's metadata;
+    ``metadata.yaml`` (bag version 9) follows at :meth:`close`.
 
     Args:
         path: the bag folder to create; it must not exist.
@@ -181,12 +229,21 @@ class BagWriter(MessageWriter):
             description, calibration, run_info, clock_origin_ns=clock_origin_ns, markers=markers
         )
         self._flush_ns = seconds_to_ns(flush_period)
-        self._writer = Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
-        if compress:  # zstd per MCAP chunk, which every MCAP reader understands
-            self._writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
-        self._writer.open()
-        self.path = self._writer.path
-        self._connections: dict[str, Connection] = {}
+        self.path = Path(path)
+        try:
+            self.path.mkdir(parents=True)
+        except FileExistsError:
+            raise FileExistsError(
+                f"{self.path}: exists; a bag is written to a new folder"
+            ) from None
+        self._file: BinaryIO | None = (self.path / f"{self.path.name}.mcap").open("xb")
+        # zstd per MCAP chunk, which every MCAP reader understands
+        compression = CompressionType.ZSTD if compress else CompressionType.NONE
+        self._mcap = Writer(self._file, chunk_size=CHUNK_SIZE, compression=compression)
+        self._mcap.start(profile="ros2", library="tensegrity-gym")
+        self._schemas: dict[str, int] = {}
+        self._topics: dict[str, _Topic] = {}
+        self._first_ns: int | None = None
         self._last_flush_ns = 0
 
     def __str__(self) -> str:
@@ -205,18 +262,30 @@ class BagWriter(MessageWriter):
 
     @property
     def closed(self) -> bool:
-        return self._writer.storage is None
+        return self._file is None
+
+    def _topic(self, name: str) -> _Topic:
+        """The channel of topic ``name``, registered (with its schema) on first use."""
+        msgtype = self.codec.topics.types[name]
+        schema = self._schemas.get(msgtype)
+        if schema is None:
+            msgdef, _ = self.codec.store.generate_msgdef(msgtype, ros_version=2)
+            schema = self._mcap.register_schema(msgtype, "ros2msg", msgdef.encode())
+            self._schemas[msgtype] = schema
+        qos = qos_dicts([m.LATCHED_QOS] if name in m.LATCHED_TOPICS else [])
+        meta = {"offered_qos_profiles": yaml.safe_dump(qos).strip()}
+        channel = self._mcap.register_channel(name, "cdr", schema, meta)
+        digest = self.codec.store.hash_rihs01(msgtype)
+        topic = self._topics[name] = _Topic(channel, msgtype, digest, qos)
+        return topic
 
     def _emit(self, topic: str, ns: int, raw: bytes) -> None:
-        conn = self._connections.get(topic)
-        if conn is None:
-            msgtype = self.codec.topics.types[topic]
-            conn = self._writer.add_connection(topic, msgtype, typestore=self.codec.store)
-            self._connections[topic] = conn
-        self._writer.write(conn, ns, raw)
+        t = self._topics.get(topic) or self._topic(topic)
+        self._mcap.add_message(t.channel, ns, raw, ns)
+        t.count += 1
 
     def _opened(self, ns: int) -> None:
-        self._last_flush_ns = ns
+        self._last_flush_ns = self._first_ns = ns
 
     def _written(self, ns: int) -> None:
         if ns - self._last_flush_ns >= self._flush_ns:
@@ -224,22 +293,65 @@ class BagWriter(MessageWriter):
             self._last_flush_ns = ns
 
     def flush(self) -> None:
-        """Close the pending MCAP chunk and hand it to the operating system."""
-        storage: Any = self._writer.storage
-        if storage is None:
-            return
-        # rosbags' MCAP storage writes a chunk when it reaches 1 MiB; closing one early is
-        # what bounds the loss on a crash (checked by tests/test_bag.py).
-        chunk = getattr(storage, "chunk", None)
-        if chunk is not None and chunk.bio.tell():
-            storage.close_chunk()
-        storage.bio.flush()
+        """Close the pending MCAP chunk and hand it to the operating system: what bounds
+        the loss on a crash (checked by tests/hardware/test_bag.py)."""
+        if not self.closed:
+            self._mcap.flush()  # type: ignore[no-untyped-call]
 
     def close(self) -> None:
         """Write the index and ``metadata.yaml``. Safe to call twice."""
-        if self.closed:
+        if self._file is None:
             return
         if self._last_ns is None:  # nothing written: still a valid bag with its header
             self._write([], 0.0)
-        self._writer.close()
+        info = self._info()
+        self._mcap.add_metadata("rosbag2", {"serialized_metadata": yaml.safe_dump(info)})
+        self._mcap.finish()  # type: ignore[no-untyped-call]
+        self._file.close()
+        self._file = None
+        tmp = self.path / "metadata.yaml.tmp"
+        tmp.write_text(yaml.safe_dump({"rosbag2_bagfile_information": info}), "utf8")
+        tmp.replace(self.path / "metadata.yaml")
         log.debug("closed %s: %d messages", self.path, self.message_count)
+
+    def _info(self) -> dict[str, Any]:
+        """The bag's ``rosbag2_bagfile_information`` (version 9), as rosbags writes it."""
+        start = self._first_ns or 0
+        duration = {"nanoseconds": max(0, (self._last_ns or 0) - start)}
+        starting = {"nanoseconds_since_epoch": start}
+        name = f"{self.path.name}.mcap"
+        topics = [
+            {
+                "topic_metadata": {
+                    "name": topic,
+                    "type": t.msgtype,
+                    "serialization_format": "cdr",
+                    "offered_qos_profiles": t.qos,
+                    "type_description_hash": t.digest,
+                },
+                "message_count": t.count,
+            }
+            for topic, t in self._topics.items()
+        ]
+        count = self.message_count
+        return {
+            "version": 9,
+            "storage_identifier": "mcap",
+            "relative_file_paths": [name],
+            "duration": duration,
+            "starting_time": starting,
+            "message_count": count,
+            "topics_with_message_count": topics,
+            "compression_format": "",
+            "compression_mode": "",
+            "files": [
+                {
+                    "path": name,
+                    "starting_time": starting,
+                    "duration": duration,
+                    "message_count": count,
+                }
+            ],
+            "custom_data": None,
+            "ros_distro": "rosbags",  # what rosbags writes: no ROS distribution wrote it
+        }

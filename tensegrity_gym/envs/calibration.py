@@ -65,7 +65,7 @@ what they make, so that no stale calibration is read."""
 CACHE_VARIABLE = "TENSEGRITY_GYM_CACHE"
 """Environment variable naming the cache folder (default ``~/.cache/tensegrity-gym``)."""
 CALIBRATION_SECONDS = 120.0
-"""s of ranging the calibration run records (papers/000: a few minutes of movement)."""
+"""s of ranging the calibration run records (Caluwaerts et al. 2016: a few minutes of movement)."""
 
 
 def check_calibration(calibration: object, world_seed: object) -> None:

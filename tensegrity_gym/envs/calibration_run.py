@@ -1,4 +1,4 @@
-"""The UWB calibration a simulated lab would make (issue 15, papers/000 section III-C):
+"""The UWB calibration a simulated lab would make (issue 15, Caluwaerts et al. 2016 section III-C):
 record the robot rolling under its gait in the lab's world, calibrate the anchors and
 offsets from the recorded ranges alone, and cache the result on disk.
 

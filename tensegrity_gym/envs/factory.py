@@ -8,7 +8,7 @@ import warnings
 from typing import TYPE_CHECKING, Any
 
 from tensegrity_gym.envs.calibration import apply_calibration, check_calibration
-from tensegrity_gym.envs.roll_env import TensegrityEnv
+from tensegrity_gym.envs.tensegrity_env import TensegrityEnv
 from tensegrity_gym.model.checks import check_fraction, check_number, check_whole
 from tensegrity_gym.model.description import DEFAULT_GAIT, RobotDescription, load_robot
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
@@ -227,8 +227,8 @@ def make_env(
             (:class:`~tensegrity_gym.tasks.roll.RollTask`), ``"goto"``
             (:class:`~tensegrity_gym.tasks.goto.GoToTask`), a lab's own.
         estimator: a registered name (:data:`tensegrity_gym.model.registry.ESTIMATORS`):
-            ``"ukf"`` (the unscented Kalman filter of papers/000, the default),
-            ``"icp"`` (the RGB-D tracker of papers/003; renders camera frames),
+            ``"ukf"`` (the unscented Kalman filter of Caluwaerts et al. 2016, the default),
+            ``"icp"`` (the RGB-D tracker of Lu et al. 2022; renders camera frames),
             ``"oracle"`` (ground truth), a lab's own; or an Estimator object.
         driver: ``None`` for the PyBullet simulation, ``"zenoh/tcp/HOST:PORT"`` for a
             robot (or the emulator) on the network, ``"bag:PATH"`` to replay a recorded

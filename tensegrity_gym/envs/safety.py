@@ -15,7 +15,7 @@ import gymnasium as gym
 from gymnasium.wrappers.common import PassiveEnvChecker
 
 if TYPE_CHECKING:
-    from tensegrity_gym.envs.roll_env import TensegrityEnv
+    from tensegrity_gym.envs.tensegrity_env import TensegrityEnv
 
 __all__ = ["StopOnError"]
 

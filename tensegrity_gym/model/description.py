@@ -1,8 +1,9 @@
 """The robot description: one frozen dataclass tree per robot, loaded from YAML.
 
-This module is the only place that parses robot geometry. The simulator builds its
-bodies from a :class:`RobotDescription`, the estimators build their models from it
-and the hardware driver maps topics to cables and rods with it.
+This module, with its YAML's schema (:mod:`tensegrity_gym.model.schema`), is the only
+place that parses robot geometry. The simulator builds its bodies from a
+:class:`RobotDescription`, the estimators build their models from it and the hardware
+driver maps topics to cables and rods with it.
 
 Conventions: SI units, world frame z up. A rod's ``length`` is the distance between
 its two endcap (node) centres; its overall length is ``length + 2 * endcap_radius``.
@@ -10,7 +11,6 @@ its two endcap (node) centres; its overall length is ``length + 2 * endcap_radiu
 
 from __future__ import annotations
 
-import re
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from importlib import resources
@@ -25,6 +25,18 @@ from tensegrity_gym.model.samples import SAMPLE_KINDS
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
+
+    from tensegrity_gym.model.schema import (
+        CableSection,
+        CameraSection,
+        GaitSection,
+        MotorSection,
+        NodeSection,
+        RobotSection,
+        RodSection,
+        SensorsSection,
+        UwbSection,
+    )
 
 __all__ = [
     "DEFAULT_GAIT",
@@ -56,9 +68,6 @@ PRESETS = tuple(sorted(f.name[:-5] for f in _ASSETS.iterdir() if f.name.endswith
 """The preset robots: one YAML file each in ``tensegrity_gym/model/assets``, by name.
 A preset's file is the one place that says what the robot is and what comes with it:
 its env ids (``display_name``, ``hardware``) and its scripted gait (``gait``)."""
-
-_DISPLAY_NAME = re.compile(r"[A-Z][A-Za-z0-9]*\Z")
-_GAIT_NAME = re.compile(r"[a-z][a-z0-9_-]*\Z")
 
 DEFAULT_GAIT = "forward"
 """The name of a robot's default gait: its YAML's ``gait`` (:attr:`RobotDescription.gait`)."""
@@ -100,7 +109,7 @@ class Motor:
     """Largest rate of change of the rest length (m/s)."""
     min_tension: float | None = None
     """N, optional in YAML: the motor keeps at least this tension on its cable, reeling in
-    any slack (papers/002's robot: "the motors are controlled to apply a minimum torque,
+    any slack (Tong et al. 2024's robot: "the motors are controlled to apply a minimum torque,
     ensuring cables remain under tension"). Its rest length (what the encoder reads)
     then never exceeds the endcap distance less ``min_tension / stiffness``, so the
     encoders give the cable lengths (zero slack). None: the rest length follows the
@@ -156,7 +165,7 @@ class ImuConfig:
     """Largest angular rate the gyro reports (rad/s); optional in YAML, 2000 deg/s."""
     rods: tuple[int, ...] | None = None
     """The rods that carry one (indices; the YAML names them), in that order; None
-    (absent): every rod. papers/002's robot has one, on its red rod."""
+    (absent): every rod. Tong et al. 2024's robot has one, on its red rod."""
 
 
 @dataclass(frozen=True)
@@ -187,7 +196,7 @@ class UwbConfig:
     """Standard deviation of each DW1000 time stamp (s)."""
     clock_drift_ppm: float
     offset_mean: float
-    """Mean of the per-pair ranging offsets o_ij (m), papers/000 eq. 6-7."""
+    """Mean of the per-pair ranging offsets o_ij (m), Caluwaerts et al. 2016 eq. 6-7."""
     offset_std: float
     reject_fraction: tuple[float, float]
     """Range of the share of packets rejected as non-line-of-sight, drawn per episode."""
@@ -290,7 +299,8 @@ class RobotDescription:
     """The robot's name in its env ids (``ThreeBar`` in ``ThreeBarRoll-v0``); the YAML's
     ``display_name``, else ``name`` in CamelCase."""
     hardware: bool = False
-    """The robot exists on the robot link: ``...Hardware-v0`` ids are registered for it."""
+    """The robot exists on the robot link: ids in the ``tensegrity_gym_hardware``
+    namespace are registered for it."""
     gait: Gait | None = None
     """Its default scripted rolling gait ("forward"), if it has one (the YAML's ``gait``)."""
     named_gaits: tuple[tuple[str, Gait], ...] = ()
@@ -442,204 +452,41 @@ class RobotDescription:
 
 
 class _Reader:
-    """Walks a parsed YAML document and reports errors by file and field path."""
+    """Names the file and the field of what is wrong with a description."""
 
     def __init__(self, source: str) -> None:
         self.source = source
 
     def fail(self, path: str, message: str) -> DescriptionError:
-        return DescriptionError(f"{self.source}: {path}: {message}")
-
-    def mapping(
-        self, value: Any, path: str, keys: set[str], optional: frozenset[str] = frozenset()
-    ) -> dict[str, Any]:
-        if not isinstance(value, dict):
-            raise self.fail(path, f"expected a mapping, got {type(value).__name__}")
-        missing = sorted(keys - value.keys())
-        if missing:
-            raise self.fail(f"{path}.{missing[0]}" if path else missing[0], "missing field")
-        unknown = sorted(set(value) - keys - optional)
-        if unknown:
-            raise self.fail(f"{path}.{unknown[0]}" if path else unknown[0], "unknown field")
-        return value
-
-    def sequence(self, value: Any, path: str, min_len: int = 1) -> list[Any]:
-        if not isinstance(value, list):
-            raise self.fail(path, f"expected a list, got {type(value).__name__}")
-        if len(value) < min_len:
-            raise self.fail(path, f"expected at least {min_len} entries, got {len(value)}")
-        return value
-
-    def number(
-        self, value: Any, path: str, *, positive: bool = False, non_negative: bool = False
-    ) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(path, f"expected a number, got {value!r}")
-        x = float(value)
-        if not np.isfinite(x):
-            raise self.fail(path, f"must be finite, got {value!r}")
-        if positive and x <= 0.0:
-            raise self.fail(path, f"must be positive, got {value!r}")
-        if non_negative and x < 0.0:
-            raise self.fail(path, f"must not be negative, got {value!r}")
-        return x
-
-    def vector(self, value: Any, path: str, size: int, **kw: bool) -> tuple[float, ...]:
-        items = self.sequence(value, path)
-        if len(items) != size:
-            raise self.fail(path, f"expected {size} numbers, got {len(items)}")
-        return tuple(self.number(v, f"{path}[{i}]", **kw) for i, v in enumerate(items))
-
-    def string(self, value: Any, path: str) -> str:
-        if not isinstance(value, str) or not value:
-            raise self.fail(path, f"expected a non-empty string, got {value!r}")
-        return value
-
-    def boolean(self, value: Any, path: str) -> bool:
-        if not isinstance(value, bool):
-            raise self.fail(path, f"expected true or false, got {value!r}")
-        return value
+        """The error ``message`` about the field at dotted ``path`` (``""``: the document)."""
+        return DescriptionError(
+            f"{self.source}: {path}: {message}" if path else f"{self.source}: {message}"
+        )
 
 
-def _node_pair(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[int, int]:
-    names = r.sequence(value, path)
-    if len(names) != 2:
-        raise r.fail(path, f"expected two node names, got {len(names)}")
-    out = []
-    for i, name in enumerate(names):
-        r.string(name, f"{path}[{i}]")
-        if name not in index:
-            raise r.fail(f"{path}[{i}]", f"unknown node {name!r}")
-        out.append(index[name])
-    if out[0] == out[1]:
-        raise r.fail(path, f"both ends are node {names[0]!r}")
-    return out[0], out[1]
+def _validated(r: _Reader, doc: Any) -> RobotSection:
+    """The parsed YAML document checked field by field (types, ranges, keys) against the
+    schema's models; the first problem, if any, as a :class:`DescriptionError`."""
+    from pydantic import ValidationError
+
+    from tensegrity_gym.model.schema import RobotSection, error_field
+
+    try:
+        return RobotSection.model_validate(doc)
+    except ValidationError as err:
+        path, message = error_field(err.errors(include_url=False)[0])
+        raise r.fail(path, message) from None
 
 
-def _sensors(r: _Reader, doc: Any, rods: list[Rod]) -> SensorSuite:
-    p = "sensors"
-    s = r.mapping(doc, p, {"imu", "encoder", "cable_length", "uwb", "contact", "camera"})
-    imu_cfg = _imu(r, s["imu"], f"{p}.imu", rods)
-    enc = r.mapping(s["encoder"], f"{p}.encoder", {"rate", "resolution"})
-    enc_cfg = EncoderConfig(
-        rate=r.number(enc["rate"], f"{p}.encoder.rate", positive=True),
-        resolution=r.number(enc["resolution"], f"{p}.encoder.resolution", non_negative=True),
-    )
-    cl = r.mapping(s["cable_length"], f"{p}.cable_length", {"rate", "noise", "slack_bias"})
-    cl_cfg = CableLengthConfig(
-        rate=r.number(cl["rate"], f"{p}.cable_length.rate", positive=True),
-        noise=r.number(cl["noise"], f"{p}.cable_length.noise", non_negative=True),
-        slack_bias=r.number(cl["slack_bias"], f"{p}.cable_length.slack_bias", non_negative=True),
-    )
-    uwb_cfg = _uwb(r, s["uwb"], f"{p}.uwb")
-    ct = r.mapping(s["contact"], f"{p}.contact", {"rate", "threshold"})
-    ct_cfg = ContactConfig(
-        rate=r.number(ct["rate"], f"{p}.contact.rate", positive=True),
-        threshold=r.number(ct["threshold"], f"{p}.contact.threshold", non_negative=True),
-    )
-    cam_cfg = _camera(r, s["camera"], f"{p}.camera")
-    return SensorSuite(imu_cfg, enc_cfg, cl_cfg, uwb_cfg, ct_cfg, cam_cfg)
+def _vec3(v: tuple[float, ...]) -> tuple[float, float, float]:
+    """A vector the schema gave three numbers."""
+    return v[0], v[1], v[2]
 
 
-def _imu(r: _Reader, doc: Any, q: str, rods: list[Rod]) -> ImuConfig:
-    """The IMU section at path ``q``; rods named by ``rods``' names."""
-    imu = r.mapping(
-        doc,
-        q,
-        {"rate", "mount", "accel_noise", "gyro_noise", "accel_bias", "gyro_bias", "mag_noise",
-         "magnetic_field", "ahrs_gain"},
-        frozenset({"accel_full_scale", "gyro_full_scale", "rods"}),
-    )  # fmt: skip
-    if imu["mount"] != "rod_centre":
-        raise r.fail(f"{q}.mount", f"only 'rod_centre' is supported, got {imu['mount']!r}")
-    return ImuConfig(
-        rate=r.number(imu["rate"], f"{q}.rate", positive=True),
-        mount=imu["mount"],
-        accel_noise=r.number(imu["accel_noise"], f"{q}.accel_noise", non_negative=True),
-        gyro_noise=r.number(imu["gyro_noise"], f"{q}.gyro_noise", non_negative=True),
-        accel_bias=r.number(imu["accel_bias"], f"{q}.accel_bias", non_negative=True),
-        gyro_bias=r.number(imu["gyro_bias"], f"{q}.gyro_bias", non_negative=True),
-        mag_noise=r.number(imu["mag_noise"], f"{q}.mag_noise", non_negative=True),
-        magnetic_field=r.vector(imu["magnetic_field"], f"{q}.magnetic_field", 3),  # type: ignore[arg-type]
-        ahrs_gain=r.number(imu["ahrs_gain"], f"{q}.ahrs_gain", positive=True),
-        **{
-            key: r.number(imu[key], f"{q}.{key}", positive=True)
-            for key in ("accel_full_scale", "gyro_full_scale")
-            if key in imu
-        },
-        rods=None if imu.get("rods") is None else _names(
-            r, imu["rods"], f"{q}.rods", {rod.name: k for k, rod in enumerate(rods)}
-        ),
-    )  # fmt: skip
-
-
-def _uwb(r: _Reader, doc: Any, q: str) -> UwbConfig:
-    """The UWB section at path ``q``."""
-    uwb = r.mapping(
-        doc,
-        q,
-        {"rate", "packet_spacing", "module_offset", "timestamp_noise", "clock_drift_ppm",
-         "offset_mean", "offset_std", "reject_fraction", "anchors"},
-    )  # fmt: skip
-    reject = r.vector(uwb["reject_fraction"], f"{q}.reject_fraction", 2, non_negative=True)
-    if not reject[0] <= reject[1] < 1.0:
-        raise r.fail(f"{q}.reject_fraction", f"need 0 <= low <= high < 1, got {list(reject)}")
-    anchors = r.sequence(uwb["anchors"], f"{q}.anchors", min_len=0)
-    uwb_cfg = UwbConfig(
-        rate=r.number(uwb["rate"], f"{q}.rate", positive=True),
-        packet_spacing=r.number(uwb["packet_spacing"], f"{q}.packet_spacing", positive=True),
-        module_offset=r.number(uwb["module_offset"], f"{q}.module_offset", non_negative=True),
-        timestamp_noise=r.number(uwb["timestamp_noise"], f"{q}.timestamp_noise", non_negative=True),
-        clock_drift_ppm=r.number(uwb["clock_drift_ppm"], f"{q}.clock_drift_ppm", non_negative=True),
-        offset_mean=r.number(uwb["offset_mean"], f"{q}.offset_mean"),
-        offset_std=r.number(uwb["offset_std"], f"{q}.offset_std", non_negative=True),
-        reject_fraction=(reject[0], reject[1]),
-        anchors=tuple(
-            r.vector(a, f"{q}.anchors[{i}]", 3)  # type: ignore[misc]
-            for i, a in enumerate(anchors)
-        ),
-    )
-    if 1.0 / uwb_cfg.rate < uwb_cfg.packet_spacing:
-        raise r.fail(f"{q}.packet_spacing", "longer than one broadcast round")
-    return uwb_cfg
-
-
-def _camera(r: _Reader, doc: Any, q: str) -> CameraConfig:
-    """The RGB-D camera section at path ``q``."""
-    cam = r.mapping(
-        doc,
-        q,
-        {"position", "target", "up", "width", "height", "vertical_fov", "near", "far", "rate",
-         "depth_noise", "depth_noise_quadratic"},
-    )  # fmt: skip
-    for key in ("width", "height"):
-        if not isinstance(cam[key], int) or isinstance(cam[key], bool) or cam[key] <= 0:
-            raise r.fail(f"{q}.{key}", f"expected a positive integer, got {cam[key]!r}")
-    cam_cfg = CameraConfig(
-        position=r.vector(cam["position"], f"{q}.position", 3),  # type: ignore[arg-type]
-        target=r.vector(cam["target"], f"{q}.target", 3),  # type: ignore[arg-type]
-        up=r.vector(cam["up"], f"{q}.up", 3),  # type: ignore[arg-type]
-        width=cam["width"],
-        height=cam["height"],
-        vertical_fov=r.number(cam["vertical_fov"], f"{q}.vertical_fov", positive=True),
-        near=r.number(cam["near"], f"{q}.near", positive=True),
-        far=r.number(cam["far"], f"{q}.far", positive=True),
-        rate=r.number(cam["rate"], f"{q}.rate", positive=True),
-        depth_noise=r.number(cam["depth_noise"], f"{q}.depth_noise", non_negative=True),
-        depth_noise_quadratic=r.number(
-            cam["depth_noise_quadratic"], f"{q}.depth_noise_quadratic", non_negative=True
-        ),
-    )
-    if cam_cfg.far <= cam_cfg.near:
-        raise r.fail(f"{q}.far", "must be greater than near")
-    return cam_cfg
-
-
-def _names(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[int, ...]:
+def _names(r: _Reader, names: tuple[str, ...], path: str, index: dict[str, int]) -> tuple[int, ...]:
     """Distinct names, each a key of ``index``, as their indices."""
     out: list[int] = []
-    for i, name in enumerate(r.sequence(value, path)):
-        r.string(name, f"{path}[{i}]")
+    for i, name in enumerate(names):
         if name not in index:
             raise r.fail(f"{path}[{i}]", f"unknown name {name!r}; valid: {sorted(index)}")
         if index[name] in out:
@@ -648,31 +495,73 @@ def _names(r: _Reader, value: Any, path: str, index: dict[str, int]) -> tuple[in
     return tuple(out)
 
 
-def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str = "gait") -> Gait:
+def _node_pair(
+    r: _Reader, names: tuple[str, ...], path: str, index: dict[str, int]
+) -> tuple[int, int]:
+    """Two node names (the schema gave two) as their indices, distinct."""
+    out = []
+    for i, name in enumerate(names):
+        if name not in index:
+            raise r.fail(f"{path}[{i}]", f"unknown node {name!r}")
+        out.append(index[name])
+    if out[0] == out[1]:
+        raise r.fail(path, f"both ends are node {names[0]!r}")
+    return out[0], out[1]
+
+
+def _sensors(r: _Reader, s: SensorsSection, rods: list[Rod]) -> SensorSuite:
+    """The ``sensors`` section; the IMU's rods named by ``rods``' names."""
+    imu_rods = None
+    if s.imu.rods is not None:
+        imu_rods = _names(
+            r, s.imu.rods, "sensors.imu.rods", {rod.name: k for k, rod in enumerate(rods)}
+        )
+    return SensorSuite(
+        imu=ImuConfig(**(s.imu.model_dump() | {"rods": imu_rods})),
+        encoder=EncoderConfig(**s.encoder.model_dump()),
+        cable_length=CableLengthConfig(**s.cable_length.model_dump()),
+        uwb=_uwb(r, s.uwb, "sensors.uwb"),
+        contact=ContactConfig(**s.contact.model_dump()),
+        camera=_camera(r, s.camera, "sensors.camera"),
+    )
+
+
+def _uwb(r: _Reader, uwb: UwbSection, q: str) -> UwbConfig:
+    """The UWB section at path ``q``: its rejected shares in order, its packets in a round."""
+    low, high = uwb.reject_fraction
+    if not low <= high < 1.0:
+        raise r.fail(f"{q}.reject_fraction", f"need 0 <= low <= high < 1, got {[low, high]}")
+    if 1.0 / uwb.rate < uwb.packet_spacing:
+        raise r.fail(f"{q}.packet_spacing", "longer than one broadcast round")
+    return UwbConfig(**uwb.model_dump())
+
+
+def _camera(r: _Reader, cam: CameraSection, q: str) -> CameraConfig:
+    """The RGB-D camera section at path ``q``: its far plane beyond its near one."""
+    if cam.far <= cam.near:
+        raise r.fail(f"{q}.far", "must be greater than near")
+    return CameraConfig(**cam.model_dump())
+
+
+def _gait(
+    r: _Reader, g: GaitSection, nodes: list[Node], cables: list[Cable], p: str = "gait"
+) -> Gait:
     """A gait section at path ``p`` (``gait``, ``gaits.NAME``): faces by node names,
     cables by name (actuated only)."""
-    g = r.mapping(doc, p, {"faces"}, frozenset({"hold_steps", "settle_steps", "ramp_steps"}))
-    steps = {"hold_steps": 25, "settle_steps": 10, "ramp_steps": 0}
-    for key, low in (("hold_steps", 1), ("settle_steps", 0), ("ramp_steps", 0)):
-        value = g.get(key, steps[key])
-        if not isinstance(value, int) or isinstance(value, bool) or value < low:
-            raise r.fail(f"{p}.{key}", f"expected an integer >= {low}, got {value!r}")
-        steps[key] = value
-    if steps["ramp_steps"] > steps["hold_steps"]:
+    if g.ramp_steps > g.hold_steps:
         raise r.fail(
             f"{p}.ramp_steps",
-            f"expected at most hold_steps ({steps['hold_steps']}): a ramp longer than the "
-            f"hold never reaches its contraction, got {steps['ramp_steps']}",
+            f"expected at most hold_steps ({g.hold_steps}): a ramp longer than the "
+            f"hold never reaches its contraction, got {g.ramp_steps}",
         )
     node_index = {n.name: i for i, n in enumerate(nodes)}
     actuated = {c.name: k for k, c in enumerate(c for c in cables if c.actuated)}
     faces: list[GaitFace] = []
-    for i, item in enumerate(r.sequence(g["faces"], f"{p}.faces")):
+    for i, f in enumerate(g.faces):
         q = f"{p}.faces[{i}]"
-        f = r.mapping(item, q, {"face", "contract", "others"}, frozenset({"move", "to"}))
-        face = _face(r, f["face"], f"{q}.face", node_index)
-        move = None if "move" not in f else _move(r.vector(f["move"], f"{q}.move", 3))
-        to = None if "to" not in f else _face(r, f["to"], f"{q}.to", node_index)
+        face = _face(r, f.face, f"{q}.face", node_index)
+        move = None if f.move is None else _vec3(f.move)
+        to = None if f.to is None else _face(r, f.to, f"{q}.to", node_index)
         if (move is None) != (to is None):
             missing = "to" if to is None else "move"
             raise r.fail(f"{q}.{missing}", "missing: a steering entry gives both 'move' "
@@ -682,91 +571,63 @@ def _gait(r: _Reader, doc: Any, nodes: list[Node], cables: list[Cable], p: str =
         if any(face == o.face and (move is None or o.move is None) for o in faces):
             raise r.fail(f"{q}.face", "this face has an entry already (only steering "
                          "entries, with 'move' and 'to', may share a face)")  # fmt: skip
-        contract = _names(r, f["contract"], f"{q}.contract", actuated)
-        if f["others"] not in ("hold", "out"):
-            raise r.fail(f"{q}.others", f"expected 'hold' or 'out', got {f['others']!r}")
-        faces.append(GaitFace(face, contract, f["others"], move, to))
-    return Gait(tuple(faces), **steps)
+        contract = _names(r, f.contract, f"{q}.contract", actuated)
+        faces.append(GaitFace(face, contract, f.others, move, to))
+    return Gait(tuple(faces), g.hold_steps, g.settle_steps, g.ramp_steps)
 
 
-def _move(v: tuple[float, ...]) -> tuple[float, float, float]:
-    return v[0], v[1], v[2]
-
-
-def _face(r: _Reader, value: Any, path: str, node_index: dict[str, int]) -> tuple[int, ...]:
-    """A support face by node names: its sorted node indices, (3,)."""
-    face = tuple(sorted(_names(r, value, path, node_index)))
-    if len(face) != 3:
-        raise r.fail(path, f"a support face has 3 nodes, got {len(face)}")
-    return face
+def _face(
+    r: _Reader, names: tuple[str, ...], path: str, node_index: dict[str, int]
+) -> tuple[int, ...]:
+    """A support face by node names (the schema gave three): its sorted node indices."""
+    return tuple(sorted(_names(r, names, path, node_index)))
 
 
 def _gaits(
-    r: _Reader, top: dict[str, Any], nodes: list[Node], cables: list[Cable]
+    r: _Reader, top: RobotSection, nodes: list[Node], cables: list[Cable]
 ) -> tuple[tuple[str, Gait], ...]:
     """The YAML's ``gaits``: further gaits by name (lower-case words), each a ``gait``
     section; ``forward`` is the ``gait`` section's name and cannot be one of them."""
-    doc = top.get("gaits")
-    if doc is None:
+    if top.gaits is None:
         return ()
-    if not isinstance(doc, dict) or not doc:
-        raise r.fail("gaits", f"expected a mapping of gaits by name, got {doc!r}")
     out: list[tuple[str, Gait]] = []
-    for name, section in doc.items():
-        if not isinstance(name, str) or not _GAIT_NAME.match(name):
-            raise r.fail(f"gaits.{name}", "a gait's name is a lower-case word such as 'left'")
+    for name, section in top.gaits.items():
         if name == DEFAULT_GAIT:
             raise r.fail(f"gaits.{name}", f"the {DEFAULT_GAIT!r} gait is the 'gait' section")
         out.append((name, _gait(r, section, nodes, cables, f"gaits.{name}")))
     return tuple(out)
 
 
-def _display_name(r: _Reader, top: dict[str, Any]) -> str:
+def _display_name(top: RobotSection) -> str:
     """The YAML's ``display_name`` (CamelCase, for env ids), else ``name`` in CamelCase."""
-    name = top.get("display_name")
-    if name is None:
-        return "".join(part.capitalize() for part in str(top["name"]).split("_"))
-    if not isinstance(name, str) or not _DISPLAY_NAME.match(name):
-        raise r.fail("display_name", f"expected a CamelCase word such as 'ThreeBar', got {name!r}")
-    return name
+    if top.display_name is not None:
+        return top.display_name
+    return "".join(part.capitalize() for part in top.name.split("_"))
 
 
-def _ground(r: _Reader, doc: Any) -> Ground:
-    """The ``ground`` section: friction coefficients (rolling and spinning in m)."""
-    keys = ("lateral_friction", "rolling_friction", "spinning_friction", "restitution")
-    g = r.mapping(doc, "ground", set(keys))
-    return Ground(*(r.number(g[key], f"ground.{key}", non_negative=True) for key in keys))
-
-
-def _nodes(r: _Reader, doc: Any) -> tuple[list[Node], dict[str, int]]:
+def _nodes(r: _Reader, sections: tuple[NodeSection, ...]) -> tuple[list[Node], dict[str, int]]:
     """The ``nodes`` section (positions in m), and each node's index by name."""
     nodes: list[Node] = []
     index: dict[str, int] = {}
-    for i, item in enumerate(r.sequence(doc, "nodes", min_len=2)):
-        n = r.mapping(item, f"nodes[{i}]", {"name", "position"})
-        name = r.string(n["name"], f"nodes[{i}].name")
-        if name in index:
-            raise r.fail(f"nodes[{i}].name", f"duplicate node name {name!r}")
-        index[name] = i
-        pos = r.vector(n["position"], f"nodes[{i}].position", 3)
-        nodes.append(Node(name, (pos[0], pos[1], pos[2])))
+    for i, n in enumerate(sections):
+        if n.name in index:
+            raise r.fail(f"nodes[{i}].name", f"duplicate node name {n.name!r}")
+        index[n.name] = i
+        nodes.append(Node(n.name, _vec3(n.position)))
     return nodes, index
 
 
 def _rods(
-    r: _Reader, doc: Any, nodes: list[Node], index: dict[str, int]
+    r: _Reader, sections: tuple[RodSection, ...], nodes: list[Node], index: dict[str, int]
 ) -> tuple[list[Rod], dict[int, str]]:
     """The ``rods`` section, checked to assemble with ``nodes`` (each node ends exactly
     one rod, at the rod's length in m), and the name of the rod each node ends."""
     positions = np.array([n.position for n in nodes])
     rods: list[Rod] = []
     owner: dict[int, str] = {}
-    rod_keys = {"name", "nodes", "length", "radius", "endcap_radius", "mass", "color"}
-    for i, item in enumerate(r.sequence(doc, "rods")):
+    for i, d in enumerate(sections):
         p = f"rods[{i}]"
-        d = r.mapping(item, p, rod_keys)
-        name = r.string(d["name"], f"{p}.name")
-        pair = _node_pair(r, d["nodes"], f"{p}.nodes", index)
+        pair = _node_pair(r, d.nodes, f"{p}.nodes", index)
         for k, node in enumerate(pair):
             if node in owner:
                 raise r.fail(
@@ -774,48 +635,29 @@ def _rods(
                     f"rods cannot be assembled: node {nodes[node].name!r} already ends rod "
                     f"{owner[node]!r}",
                 )
-            owner[node] = name
-        length = r.number(d["length"], f"{p}.length", positive=True)
+            owner[node] = d.name
         gap = float(np.linalg.norm(positions[pair[1]] - positions[pair[0]]))
-        if abs(gap - length) > _ASSEMBLY_TOLERANCE * length:
+        if abs(gap - d.length) > _ASSEMBLY_TOLERANCE * d.length:
             raise r.fail(
                 f"{p}.length",
                 f"rods cannot be assembled: nodes {nodes[pair[0]].name!r} and "
-                f"{nodes[pair[1]].name!r} are {gap:.4f} m apart but the rod is {length:.4f} m long",
+                f"{nodes[pair[1]].name!r} are {gap:.4f} m apart but the rod is "
+                f"{d.length:.4f} m long",
             )
-        radius = r.number(d["radius"], f"{p}.radius", positive=True)
-        endcap = r.number(d["endcap_radius"], f"{p}.endcap_radius", positive=True)
-        if 2.0 * endcap >= length:
+        if 2.0 * d.endcap_radius >= d.length:
             raise r.fail(f"{p}.endcap_radius", "endcaps overlap: twice the radius exceeds length")
-        color = r.vector(d["color"], f"{p}.color", 4, non_negative=True)
-        rods.append(
-            Rod(
-                name=name,
-                nodes=pair,
-                length=length,
-                radius=radius,
-                endcap_radius=endcap,
-                mass=r.number(d["mass"], f"{p}.mass", positive=True),
-                color=(color[0], color[1], color[2], color[3]),
-            )
-        )
+        color = (d.color[0], d.color[1], d.color[2], d.color[3])
+        rods.append(Rod(d.name, pair, d.length, d.radius, d.endcap_radius, d.mass, color))
     loose = [nodes[k].name for k in range(len(nodes)) if k not in owner]
     if loose:
         raise r.fail("rods", f"rods cannot be assembled: node {loose[0]!r} ends no rod")
     return rods, owner
 
 
-def _motor(r: _Reader, doc: Any, p: str, rest: float) -> Motor:
+def _motor(r: _Reader, m: MotorSection, p: str, rest: float) -> Motor:
     """The ``motor`` of the actuated cable at path ``p``, whose range (m) must hold its
     initial rest length ``rest`` (m)."""
-    m = r.mapping(
-        doc,
-        f"{p}.motor",
-        {"min_rest_length", "max_rest_length", "max_speed"},
-        frozenset({"min_tension"}),
-    )
-    lo = r.number(m["min_rest_length"], f"{p}.motor.min_rest_length", positive=True)
-    hi = r.number(m["max_rest_length"], f"{p}.motor.max_rest_length", positive=True)
+    lo, hi = m.min_rest_length, m.max_rest_length
     if hi <= lo:
         raise r.fail(
             f"{p}.motor.max_rest_length",
@@ -823,83 +665,63 @@ def _motor(r: _Reader, doc: Any, p: str, rest: float) -> Motor:
         )
     if not lo <= rest <= hi:
         raise r.fail(f"{p}.rest_length", f"{rest} lies outside the motor's range [{lo}, {hi}]")
-    speed = r.number(m["max_speed"], f"{p}.motor.max_speed", positive=True)
-    tension = m.get("min_tension")
-    if tension is not None:
-        tension = r.number(tension, f"{p}.motor.min_tension", positive=True)
-    return Motor(lo, hi, speed, tension)
+    return Motor(lo, hi, m.max_speed, m.min_tension)
 
 
-def _cables(r: _Reader, doc: Any, index: dict[str, int], owner: dict[int, str]) -> list[Cable]:
+def _cables(
+    r: _Reader, sections: tuple[CableSection, ...], index: dict[str, int], owner: dict[int, str]
+) -> list[Cable]:
     """The ``cables`` section: each joins two rods (``owner``: node -> its rod's name),
-    and at least one is actuated."""
+    an actuated one has a motor and a passive one none, and at least one is actuated."""
     cables: list[Cable] = []
-    cable_keys = {"name", "nodes", "stiffness", "damping", "rest_length", "actuated"}
-    for i, item in enumerate(r.sequence(doc, "cables")):
+    for i, d in enumerate(sections):
         p = f"cables[{i}]"
-        if not isinstance(item, dict):
-            raise r.fail(p, f"expected a mapping, got {type(item).__name__}")
-        actuated = (
-            r.boolean(item.get("actuated", None), f"{p}.actuated") if "actuated" in item else None
-        )
-        if actuated is None:
-            raise r.fail(f"{p}.actuated", "missing field")
-        d = r.mapping(item, p, cable_keys | ({"motor"} if actuated else set()))
-        pair = _node_pair(r, d["nodes"], f"{p}.nodes", index)
+        given = "motor" in d.model_fields_set
+        if d.actuated and d.motor is None:
+            raise r.fail(
+                f"{p}.motor", "expected a mapping, got NoneType" if given else "missing field"
+            )
+        if not d.actuated and given:
+            raise r.fail(f"{p}.motor", "unknown field")
+        pair = _node_pair(r, d.nodes, f"{p}.nodes", index)
         if owner[pair[0]] == owner[pair[1]]:
             raise r.fail(f"{p}.nodes", f"both ends are on rod {owner[pair[0]]!r}")
-        rest = r.number(d["rest_length"], f"{p}.rest_length", positive=True)
-        motor = _motor(r, d["motor"], p, rest) if actuated else None
-        cables.append(
-            Cable(
-                name=r.string(d["name"], f"{p}.name"),
-                nodes=pair,
-                stiffness=r.number(d["stiffness"], f"{p}.stiffness", positive=True),
-                damping=r.number(d["damping"], f"{p}.damping", non_negative=True),
-                rest_length=rest,
-                actuated=actuated,
-                motor=motor,
-            )
-        )
+        motor = None if d.motor is None else _motor(r, d.motor, p, d.rest_length)
+        cables.append(Cable(d.name, pair, d.stiffness, d.damping, d.rest_length, d.actuated, motor))
     if not any(c.actuated for c in cables):
         raise r.fail("cables", "no cable is actuated")
     return cables
 
 
-def _carries(r: _Reader, top: dict[str, Any]) -> tuple[str, ...] | None:
+def _carries(r: _Reader, top: RobotSection) -> tuple[str, ...] | None:
     """The YAML's ``carries``: distinct names of :data:`SAMPLE_KINDS`, in that table's
     order; None where it is absent (the robot carries every kind)."""
-    if top.get("carries") is None:
+    if top.carries is None:
         return None
     index = {kind: i for i, kind in enumerate(SAMPLE_KINDS)}
     kinds = list(index)
-    return tuple(kinds[i] for i in sorted(_names(r, top["carries"], "carries", index)))
+    return tuple(kinds[i] for i in sorted(_names(r, top.carries, "carries", index)))
 
 
 def parse_robot(doc: Any, source: str) -> RobotDescription:
-    """Validate a parsed YAML document and build the description from it."""
+    """Validate a parsed YAML document and build the description from it: each field
+    against the schema (:mod:`tensegrity_gym.model.schema`), then the fields together."""
     r = _Reader(source)
-    top = r.mapping(
-        doc,
-        "",
-        {"name", "gravity", "ground", "nodes", "rods", "cables", "sensors"},
-        frozenset({"display_name", "hardware", "gait", "gaits", "carries"}),
-    )
-    ground = _ground(r, top["ground"])
-    nodes, index = _nodes(r, top["nodes"])
-    rods, owner = _rods(r, top["rods"], nodes, index)
-    cables = _cables(r, top["cables"], index, owner)
+    top = _validated(r, doc)
+    nodes, index = _nodes(r, top.nodes)
+    rods, owner = _rods(r, top.rods, nodes, index)
+    cables = _cables(r, top.cables, index, owner)
     return RobotDescription(
-        name=r.string(top["name"], "name"),
-        gravity=r.number(top["gravity"], "gravity", non_negative=True),
-        ground=ground,
+        name=top.name,
+        gravity=top.gravity,
+        ground=Ground(**top.ground.model_dump()),
         nodes=tuple(nodes),
         rods=tuple(rods),
         cables=tuple(cables),
-        sensors=_sensors(r, top["sensors"], rods),
-        display_name=_display_name(r, top),
-        hardware=r.boolean(top.get("hardware", False), "hardware"),
-        gait=None if top.get("gait") is None else _gait(r, top["gait"], nodes, cables),
+        sensors=_sensors(r, top.sensors, rods),
+        display_name=_display_name(top),
+        hardware=top.hardware,
+        gait=None if top.gait is None else _gait(r, top.gait, nodes, cables),
         named_gaits=_gaits(r, top, nodes, cables),
         carries=_carries(r, top),
         source=source,

@@ -6,7 +6,7 @@ Conventions used everywhere in the project:
   takes a body-frame vector into the world frame.
 - Tangent vectors put the rotation first: SE(3) ``xi = (phi, rho)``, (..., 6);
   SE_2(3) ``xi = (phi, nu, rho)`` (rotation, velocity, position), (..., 9), the order of
-  the right-invariant EKF of papers/002.
+  the right-invariant EKF of Tong et al. 2024.
 - Group elements are matrices: SO(3) (..., 3, 3), SE(3) (..., 4, 4), SE_2(3) (..., 5, 5)
   ``[[R, v, p], [0, 1, 0], [0, 0, 1]]``; SE_k(3) (..., 3 + k, 3 + k) ``[[R, t_1 .. t_k],
   [0, I_k]]`` with tangent ``(phi, t_1, ..., t_k)``, (..., 3 + 3k): the contact-aided

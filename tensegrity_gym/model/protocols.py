@@ -35,7 +35,7 @@ __all__ = [
 class SensorCalibration:
     """Per-robot calibration an estimator may use (what a lab would have measured).
 
-    ``uwb_offsets`` holds o_ij of papers/000 eq. 6-7 for every module pair, symmetric,
+    ``uwb_offsets`` holds o_ij of Caluwaerts et al. 2016 eq. 6-7 for every module pair, symmetric,
     (n_modules, n_modules), module ids as in :class:`UwbRangeSample`.
     """
 
@@ -50,7 +50,7 @@ class SensorCalibration:
 
 @dataclass(frozen=True)
 class UwbCalibration:
-    """The UWB part of a :class:`SensorCalibration` as a lab calibrates it (papers/000
+    """The UWB part of a :class:`SensorCalibration` as a lab calibrates it (Caluwaerts et al. 2016
     section III-C): where the anchors stand and every pair's offset, in the world frame
     the anchors define."""
 

@@ -224,7 +224,7 @@ register_estimator(
     "ukf",
     "estimation.ukf:UkfEstimator",
     requires=("uwb",),
-    summary="the unscented Kalman filter of papers/000 (AHRS, UWB, cable lengths)",
+    summary="the unscented Kalman filter of Caluwaerts et al. 2016 (AHRS, UWB, cable lengths)",
     needs={"uwb": "UWB ranges to anchors, to place the robot"},
 )
 register_estimator(
@@ -232,7 +232,7 @@ register_estimator(
     "estimation.icp:IcpEstimator",
     requires=("rgbd", "cable_lengths"),
     camera=True,
-    summary="the RGB-D tracker of papers/003",
+    summary="the RGB-D tracker of Lu et al. 2022",
     needs={"rgbd": "RGB-D camera frames", "cable_lengths": "cable-length sensors"},
 )
 register_estimator(
@@ -240,7 +240,7 @@ register_estimator(
     "estimation.inekf:InekfEstimator",
     requires=("imu", "encoders"),
     robots=("three_bar", "three_bar_large"),
-    summary="the proprioceptive invariant EKF of papers/002 (IMU, encoders, contacts)",
+    summary="the proprioceptive invariant EKF of Tong et al. 2024 (IMU, encoders, contacts)",
     needs={
         "imu": "the base rod's IMU, to propagate the pose",
         "encoders": "motor encoders, to reconstruct the shape",

@@ -89,7 +89,7 @@ class CableLengthSample:
 
 @dataclass(frozen=True, slots=True)
 class UwbRangeSample:
-    """One broadcast round of UWB ranging (papers/000, section III).
+    """One broadcast round of UWB ranging (Caluwaerts et al. 2016, section III).
 
     Module ids 0..n_nodes-1 are the robot's endcap modules, n_nodes.. are the fixed
     anchors. ``ranges`` are the uncorrected distances m_{j,i} of eq. 6-7: true

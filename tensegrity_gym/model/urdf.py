@@ -5,8 +5,12 @@ held by cables. The URDF therefore has a root link ``world`` and one link per ro
 attached to the root by a ``floating`` joint (which robot_state_publisher leaves alone:
 the rods' poses come from ``/tf``, see :mod:`hardware.bag.scene`). A rod's link frame
 is the rod's body frame: origin at the rod's centre, z along the rod. Its visuals are a
-cylinder (the rod) and a sphere at each end (the endcaps), in the rod's colour.
-Cables are not links; the markers draw them.
+cylinder (the rod) and a sphere at each end (the endcaps), in the rod's colour; its
+collisions are the same shapes (as the simulator builds the rod). Its ``<inertial>``
+holds the rod's mass (kg) at its centre with a solid cylinder's inertia (kg m^2) of the
+rod's radius and length, so that a physics engine loading it (PyBullet: a test checks)
+gets the rods' masses instead of its defaults. Cables are not links; the markers draw them.
+The root link ``world`` has no inertial: it is the fixed frame, not a body.
 
 Built from the :class:`~tensegrity_gym.model.description.RobotDescription` alone.
 """
@@ -29,24 +33,53 @@ def _number(x: float) -> str:
     return f"{x:.6g}"
 
 
-def _visual(link: ET.Element, geometry: str, size: dict[str, float], z: float, rod: Rod) -> None:
-    """A visual of ``link``: a ``geometry`` (cylinder or sphere) of ``size`` (m) at
-    height ``z`` (m) along the rod, in the rod's colour."""
-    visual = ET.SubElement(link, "visual")
-    ET.SubElement(visual, "origin", xyz=f"0 0 {_number(z)}", rpy="0 0 0")
-    shape = ET.SubElement(ET.SubElement(visual, "geometry"), geometry)
+def _exact(x: float) -> str:
+    """``x`` as the shortest text that reads back as the same float: a mass or an
+    inertia is given as the description has it, not rounded for the eye."""
+    return repr(float(x))
+
+
+def _shape(
+    link: ET.Element, kind: str, geometry: str, size: dict[str, float], z: float
+) -> ET.Element:
+    """A ``kind`` (``visual`` or ``collision``) element of ``link``: a ``geometry``
+    (cylinder or sphere) of ``size`` (m) at height ``z`` (m) along the rod."""
+    element = ET.SubElement(link, kind)
+    ET.SubElement(element, "origin", xyz=f"0 0 {_number(z)}", rpy="0 0 0")
+    shape = ET.SubElement(ET.SubElement(element, "geometry"), geometry)
     for key, value in size.items():
         shape.set(key, _number(value))
-    material = ET.SubElement(visual, "material", name=f"{rod.name}_colour")
-    ET.SubElement(material, "color", rgba=" ".join(_number(c) for c in rod.color))
+    return element
+
+
+def _inertial(link: ET.Element, rod: Rod) -> None:
+    """The rod's mass (kg) at its centre and a solid cylinder's inertia tensor (kg m^2)
+    about it: ``m (3 r^2 + L^2) / 12`` across the rod, ``m r^2 / 2`` along it (z).
+    The endcaps' own share is left out, as the description gives one mass per rod."""
+    m, r, length = rod.mass, rod.radius, rod.length
+    across = m * (3.0 * r * r + length * length) / 12.0
+    along = 0.5 * m * r * r
+    inertial = ET.SubElement(link, "inertial")
+    ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
+    ET.SubElement(inertial, "mass", value=_exact(m))
+    ET.SubElement(inertial, "inertia", ixx=_exact(across), ixy="0", ixz="0",
+                  iyy=_exact(across), iyz="0", izz=_exact(along))  # fmt: skip
 
 
 def _rod_link(robot: ET.Element, rod: Rod) -> None:
-    """The rod's link (a cylinder, an endcap sphere at each end) and its floating joint."""
+    """The rod's link (inertial; a cylinder and an endcap sphere at each end, seen and
+    colliding) and its floating joint."""
     link = ET.SubElement(robot, "link", name=rod.name)
-    _visual(link, "cylinder", {"radius": rod.radius, "length": rod.length}, 0.0, rod)
-    for end in (-0.5, 0.5):
-        _visual(link, "sphere", {"radius": rod.endcap_radius}, end * rod.length, rod)
+    _inertial(link, rod)
+    shapes = [("cylinder", {"radius": rod.radius, "length": rod.length}, 0.0)]
+    shapes += [("sphere", {"radius": rod.endcap_radius}, end * rod.length) for end in (-0.5, 0.5)]
+    rgba = " ".join(_number(c) for c in rod.color)
+    for geometry, size, z in shapes:
+        visual = _shape(link, "visual", geometry, size, z)
+        material = ET.SubElement(visual, "material", name=f"{rod.name}_colour")
+        ET.SubElement(material, "color", rgba=rgba)
+    for geometry, size, z in shapes:
+        _shape(link, "collision", geometry, size, z)
     joint = ET.SubElement(robot, "joint", name=f"{ROOT_LINK}_to_{rod.name}", type="floating")
     ET.SubElement(joint, "parent", link=ROOT_LINK)
     ET.SubElement(joint, "child", link=rod.name)

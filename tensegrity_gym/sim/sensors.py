@@ -212,7 +212,7 @@ class EncoderModel:
 
 
 class CableLengthModel:
-    """Stretch sensors along every cable (papers/003): noisy endcap distances, and wrong
+    """Stretch sensors along every cable (Lu et al. 2022): noisy endcap distances, and wrong
     while a cable is slack, when the sensor buckles and reads its own length."""
 
     def __init__(self, config: CableLengthConfig, description: RobotDescription) -> None:
@@ -254,7 +254,8 @@ put by hand at the marked spots)."""
 
 
 class UwbModel:
-    """DW1000 ranging by timed broadcast, symmetric double-sided two-way (papers/000 III).
+    """DW1000 ranging by timed broadcast, symmetric double-sided two-way (Caluwaerts et al. 2016
+    III).
 
     Each round, every module polls in turn (packets ``packet_spacing`` apart), then each
     responds and sends a final message. Each module computes eq. 5-6 from its six local

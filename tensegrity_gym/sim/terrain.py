@@ -56,7 +56,7 @@ __all__ = [
     "valley",
 ]
 
-# Built maps span +-_HALF_SPAN rod lengths around the origin (papers/002's robot rolled
+# Built maps span +-_HALF_SPAN rod lengths around the origin (Tong et al. 2024's robot rolled
 # 15 L through its valley), _CELL rod lengths a cell: Bullet's cost of a rod's contact
 # with a heightfield grows with the triangles under it (a tenth of L: 10x the plane's
 # step time; a quarter: about 2x).
@@ -222,7 +222,7 @@ def valley(
     ``inner`` L, down ``depth`` L over ``width`` / 2 and up again (steepest slope pi *
     depth / width: 9 degrees by default), flat beyond. Deterministic (``rng`` unused).
 
-    At papers/002's scale (a 1.45 m robot) the trough is 7.3 m across and 0.36 m deep.
+    At Tong et al. 2024's scale (a 1.45 m robot) the trough is 7.3 m across and 0.36 m deep.
     """
     del rng
     x, y, cell = _grid(description)

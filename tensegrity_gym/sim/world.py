@@ -272,7 +272,7 @@ class PhysicsWorld:
                 angularDamping=0.0,
                 physicsClientId=c,
             )
-            # Rod body grey, endcaps in the rod's colour (papers/003 paints endcaps).
+            # Rod body grey, endcaps in the rod's colour (Lu et al. 2022 paints endcaps).
             pybullet.changeVisualShape(
                 body, -1, shapeIndex=0, rgbaColor=[0.3, 0.3, 0.3, 1.0], physicsClientId=c
             )

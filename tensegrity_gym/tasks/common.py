@@ -35,6 +35,7 @@ __all__ = [
     "SPEED_MARGIN",
     "VELOCITY_BOUND",
     "GoalFrameTask",
+    "ObservationField",
     "TaskObservation",
     "max_speed",
 ]
@@ -55,6 +56,24 @@ class TaskObservation:
     velocities: NDArray[np.float32]
     rest_lengths: NDArray[np.float32]
     goal: NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class ObservationField:
+    """Entries ``observation[start:stop]`` that share one meaning, unit and bounds: the
+    (x, y, z) of a node, one rest length, one goal feature (see
+    :meth:`GoalFrameTask.observation_layout`)."""
+
+    start: int
+    stop: int
+    """One past the last entry: the field is ``stop - start`` entries."""
+    meaning: str
+    units: str
+    """``"L"`` (rod lengths), ``"L/s"``, ``"1"`` (unitless) or ``"[-1, 1] of the motor
+    range"``."""
+    low: float
+    high: float
+    """The observation space's bounds of every entry of the field."""
 
 
 class GoalFrameTask:
@@ -103,6 +122,52 @@ class GoalFrameTask:
         high = np.concatenate([body, goal_high]).astype(np.float32)
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self._sizes = (3 * n, 3 * n, m, len(goal_low))
+
+    goal_feature_meanings: tuple[tuple[str, str], ...] = ()
+    """(meaning, units) of each goal feature, in order, for :meth:`observation_layout`;
+    a subclass names its own (where it names none: "goal feature i", unitless)."""
+
+    def observation_layout(self) -> list[ObservationField]:
+        """The observation, entry by entry in order, as fields: each node's position
+        (x, y, z) relative to the CoM in L, each node's velocity in L/s, each actuated
+        cable's rest length in [-1, 1] over its motor's range, then each goal feature;
+        bounds from :attr:`observation_space`. The fields cover ``observation()``'s
+        ``sum(sizes)`` entries exactly (what an env appends is not the task's)."""
+        d = self.description
+        names = [node.name for node in d.nodes]
+        lo, hi, _ = d.motor_limits
+        rows: list[tuple[str, str]] = []
+        rows += [(f"node {x} position (x, y, z) relative to the CoM", "L") for x in names]
+        rows += [(f"node {x} velocity (x, y, z)", "L/s") for x in names]
+        for k, index in enumerate(d.actuated):
+            cable = d.cables[int(index)]
+            a, b = (names[i] for i in cable.nodes)
+            rows.append((
+                f"cable {cable.name} ({a}-{b}) rest length: -1 at {lo[k]:.5g} m, "
+                f"1 at {hi[k]:.5g} m",
+                "[-1, 1] of the motor range",
+            ))  # fmt: skip
+        k_goal = self._sizes[3]
+        meanings = self.goal_feature_meanings
+        if len(meanings) != k_goal:
+            meanings = tuple((f"goal feature {i}", "1") for i in range(k_goal))
+        rows += meanings
+        widths = [3] * (2 * d.n_nodes) + [1] * (d.n_actuated + k_goal)
+        return self._fields(rows, widths)
+
+    def _fields(self, rows: list[tuple[str, str]], widths: list[int]) -> list[ObservationField]:
+        """``rows`` (meaning, units) of ``widths`` entries each, laid end to end."""
+        low, high = self.observation_space.low, self.observation_space.high
+        fields, start = [], 0
+        for (meaning, units), width in zip(rows, widths, strict=True):
+            stop = start + width
+            field = ObservationField(start, stop, meaning, units,
+                                     float(low[start]), float(high[start]))  # fmt: skip
+            if np.any(low[start:stop] != field.low) or np.any(high[start:stop] != field.high):
+                raise ValueError(f"observation entries {start}:{stop} differ in their bounds")
+            fields.append(field)
+            start = stop
+        return fields
 
     def frame_direction(self, estimate: Estimate) -> NDArray[np.float64]:
         """The goal frame's x axis in the world's ground plane, a unit (2,)."""

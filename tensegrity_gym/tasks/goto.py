@@ -132,6 +132,13 @@ class GoToTask(GoalFrameTask):
         self.goal = centre[:2] + distance * np.array([np.cos(heading), np.sin(heading)])
         self._initial = distance
 
+    goal_feature_meanings = (
+        ("cos of the direction to the goal, world frame", "1"),
+        ("sin of the direction to the goal, world frame", "1"),
+        ("horizontal distance from the estimated CoM to the goal", "L"),
+    )
+    """The goal features (:meth:`GoalFrameTask.observation_layout`): where the goal is."""
+
     reset_options = frozenset({"goal"})
     """The keys of ``env.reset(options=...)`` that :meth:`reset` takes."""
 

@@ -90,6 +90,12 @@ class RollTask(GoalFrameTask):
         self.start = np.zeros(3)
         self._jumped = 0.0  # m along the heading moved in implausible steps
 
+    goal_feature_meanings = (
+        ("cos of the goal heading, world frame", "1"),
+        ("sin of the goal heading, world frame", "1"),
+    )
+    """The goal features (:meth:`GoalFrameTask.observation_layout`): the goal heading."""
+
     reset_options = frozenset({"goal_heading", "goal_distance"})
     """The keys of ``env.reset(options=...)`` that :meth:`reset` takes."""
 

@@ -1,0 +1,170 @@
+"""``tensegrity-gym bench``: every benchmark in one run, as one JSON document.
+
+Every figure is measured in one run of one process, so ratios compare like with like
+on a shared, noisy machine.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+from typing import TYPE_CHECKING, Any
+
+from agents.benchmarks.env import bench_env_speed, bench_env_speed_ratio, bench_memory
+from agents.training.cluster import executor
+
+if TYPE_CHECKING:
+    from agents.training.cluster import Executor
+
+__all__ = ["run_benchmarks"]
+
+
+def _bench_proprioceptive(speed_steps: int) -> dict[str, Any]:
+    """Tong et al. 2024 on the 1.45 m robot: table II (:mod:`agents.benchmarks.proprio`), the
+    filter's and the shape solver's speed, and the env with it against the oracle."""
+    from agents.benchmarks.inekf import bench_inekf
+    from agents.benchmarks.proprio import bench_proprioceptive
+    from agents.benchmarks.shape import bench_shape
+
+    large = "tensegrity_gym/ThreeBarLargeRoll-v0"
+    speed = bench_env_speed_ratio(large, "inekf", steps=max(speed_steps // 7, 100))
+    return {
+        "table": bench_proprioceptive(),
+        "filter_us": bench_inekf(),
+        "shape_us": bench_shape(),
+        "speed": speed,
+        "inekf_over_oracle_env_speed": speed["ratio"],
+        "targets": {
+            "propagate_us": 20,
+            "correct_us (3 contacts)": 40,
+            "shape solve_us": 2000,
+            "inekf_over_oracle_env_speed": 0.8,
+        },
+    }
+
+
+def _bench_estimators(speed_steps: int, jobs: Executor) -> dict[str, Any]:
+    """The filters' speed, the estimation study (its jobs on ``jobs``), the ICP tracker,
+    Tong et al. 2024's estimator and UWB calibration."""
+    from agents.benchmarks.calibration import bench_calibration
+    from agents.benchmarks.calibration_loop import bench_calibration_in_loop
+    from agents.benchmarks.estimation import bench_estimation, bench_filter_speed
+    from agents.benchmarks.icp import bench_icp
+
+    return {
+        "filter_speed": [
+            bench_filter_speed("tensegrity_gym/ThreeBarRoll-v0"),
+            bench_filter_speed("tensegrity_gym/SuperBallRoll-v0"),
+        ],
+        "filter_speed_targets": {
+            "three_bar fast_filter_step_ms_median": 2.0,
+            "superball fast_filter_step_ms_median": 5.0,
+            "speedup_vs_filterpy_numpy_model": 50,
+        },
+        "estimation": bench_estimation(executor=jobs),
+        "icp": bench_icp(),
+        "proprioceptive": _bench_proprioceptive(speed_steps),
+        "uwb_calibration": {
+            "calibrator": bench_calibration(),
+            "ukf_estimated_against_true": bench_calibration_in_loop(),
+        },
+    }
+
+
+def _bench_link(link_steps: int, soak_minutes: float) -> dict[str, Any]:
+    """The robot link against the emulator: latency and throughput over ``link_steps``
+    periods, and a soak of ``soak_minutes``."""
+    from agents.benchmarks.link import bench_latency, bench_soak, bench_throughput
+
+    link: dict[str, Any] = {}
+    if link_steps > 0:
+        link["latency"] = bench_latency(link_steps)
+        link["throughput"] = bench_throughput(max(link_steps * 2 // 3, 50))
+    if soak_minutes > 0:
+        link["soak"] = bench_soak(soak_minutes)
+    link["targets"] = {
+        "driver_added_latency_ms median and p99": 5.0,
+        "throughput dropped_on_driver_side": 0,
+        "soak growth": "none in memory or latency",
+    }
+    return link
+
+
+def run_benchmarks(
+    speed_steps: int = 2000,
+    memory_steps: int = 100_000,
+    estimation: bool = False,
+    bag_minutes: float = 10.0,
+    link_steps: int = 300,
+    soak_minutes: float = 0.0,
+    sim2real: bool = False,
+    ray_address: str | None = None,
+) -> dict[str, Any]:
+    """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.benchmarks.bags`) and
+    the robot link against the emulator (:mod:`agents.benchmarks.link`, ``link_steps`` 10 Hz
+    steps, and a soak of ``soak_minutes``); with ``estimation``, also the estimation
+    study and the UKF's speed against filterpy's (:mod:`agents.benchmarks.estimation`); with
+    ``sim2real``, the UKF in randomised worlds and system identification
+    (:mod:`agents.benchmarks.sim2real`); with ``ray_address``, the Ray vec env against
+    ``SubprocVecEnv`` and the sizing model's costs (:mod:`agents.benchmarks.ray_cluster`), and the
+    estimation study's replays as Ray tasks on that cluster."""
+    with executor(ray_address) as jobs:
+        results = _run(speed_steps, memory_steps, estimation, bag_minutes, link_steps,
+                       soak_minutes, sim2real, jobs)  # fmt: skip
+        if not jobs.local:
+            from agents.benchmarks.ray_cluster import bench_ray
+
+            results["ray"] = bench_ray(steps=max(speed_steps // 5, 100))
+    return results
+
+
+def _run(
+    speed_steps: int,
+    memory_steps: int,
+    estimation: bool,
+    bag_minutes: float,
+    link_steps: int,
+    soak_minutes: float,
+    sim2real: bool,
+    jobs: Executor,
+) -> dict[str, Any]:
+    """:func:`run_benchmarks` but the Ray part; the estimation study's jobs on ``jobs``."""
+    results: dict[str, Any] = {
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+        },
+        "speed": [
+            bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps),
+            bench_env_speed("tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100)),
+            bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps, estimator="ukf"),
+            bench_env_speed(
+                "tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100), estimator="ukf"
+            ),
+        ],
+        "targets": {
+            "tensegrity_gym/ThreeBarRoll-v0 oracle env_steps_per_s": 400,
+            "tensegrity_gym/SuperBallRoll-v0 oracle env_steps_per_s": 150,
+            "tensegrity_gym/ThreeBarRoll-v0 ukf env_steps_per_s": 250,
+            "tensegrity_gym/SuperBallRoll-v0 ukf env_steps_per_s": 80,
+            "memory growth_mb per 100k steps (ukf in the loop)": 50,
+        },
+    }
+    if estimation:
+        results.update(_bench_estimators(speed_steps, jobs))
+    if sim2real:
+        from agents.benchmarks.sim2real import bench_identify, bench_randomized_ukf
+
+        results["sim2real"] = {"randomized_ukf": bench_randomized_ukf(),
+                               "identify": bench_identify()}  # fmt: skip
+    if bag_minutes > 0:
+        from agents.benchmarks.bags import bench_bags
+
+        results["bags"] = bench_bags(minutes=bag_minutes)
+    if link_steps > 0 or soak_minutes > 0:
+        results["link"] = _bench_link(link_steps, soak_minutes)
+    if memory_steps > 0:
+        results["memory"] = bench_memory("tensegrity_gym/ThreeBarRoll-v0", memory_steps)
+    return results

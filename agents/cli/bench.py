@@ -1,0 +1,85 @@
+"""``bench``: the env's speed and memory, and the optional studies, as JSON."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from agents.cli.arguments import Command, add_ray, count, non_negative_float, positive_int
+
+if TYPE_CHECKING:
+    import argparse
+
+__all__ = ["COMMANDS"]
+
+
+def add_bench(bench: argparse.ArgumentParser) -> None:
+    """``bench``'s options: the steps of each measurement (0 skips one), the studies."""
+    bench.add_argument("--steps", type=positive_int, default=2000, help="env steps timed per env")
+    bench.add_argument(
+        "--memory-steps",
+        type=count,
+        default=100_000,
+        help="env steps of the memory test (0: skip)",
+    )
+    bench.add_argument(
+        "--estimation",
+        action="store_true",
+        help="also run the estimation study (Caluwaerts et al. 2016 on SUPERball), the UKF's "
+        "speed against filterpy's, the ICP tracker's figures and Tong et al. 2024's table "
+        "(the invariant EKF on the 1.45 m robot, beside the UKF)",
+    )
+    bench.add_argument(
+        "--sim2real",
+        action="store_true",
+        help="also run the UKF in randomised worlds (none, mild, strong) and the "
+        "identification of a 3-bar robot recorded 30 %% off its description",
+    )
+    bench.add_argument(
+        "--bag-minutes",
+        type=non_negative_float,
+        default=10.0,
+        help="minutes of 3-bar recording whose reading and replay are timed (0: skip)",
+    )
+    bench.add_argument(
+        "--link-steps",
+        type=count,
+        default=300,
+        help="10 Hz steps of the robot-link latency test against the emulator (0: skip)",
+    )
+    bench.add_argument(
+        "--soak-minutes",
+        type=non_negative_float,
+        default=0.0,
+        help="minutes of emulated operation watched for memory and latency growth",
+    )
+    add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
+    bench.add_argument("--out", default=None, help="also write the JSON to this file")
+
+
+def run_bench(args: argparse.Namespace) -> int:
+    """``bench``: run the benchmarks; print their JSON (and write it to ``--out``)."""
+    from agents.benchmarks.suite import run_benchmarks
+
+    results = run_benchmarks(
+        speed_steps=args.steps,
+        memory_steps=args.memory_steps,
+        estimation=args.estimation,
+        bag_minutes=args.bag_minutes,
+        link_steps=args.link_steps,
+        soak_minutes=args.soak_minutes,
+        sim2real=args.sim2real,
+        ray_address=args.ray,
+    )
+    text = json.dumps(results, indent=2)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(text + "\n")
+    sys.stdout.write(text + "\n")
+    return 0
+
+
+COMMANDS = (Command("bench", "measure env speed and memory; print JSON", add_bench, run_bench),)
+"""The subcommands of this module, in ``--help``'s order."""
