@@ -1,4 +1,4 @@
-"""The demo: a scripted rolling gait on the 3-bar robot, with a plot of where it went."""
+"""The ``gait`` command: a robot's scripted rolling gait, with a plot of where it went."""
 
 from __future__ import annotations
 

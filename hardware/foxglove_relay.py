@@ -20,6 +20,7 @@ client as a connection from 127.0.0.1.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import logging
 import threading
 from typing import TYPE_CHECKING
@@ -30,7 +31,13 @@ if TYPE_CHECKING:
 
     T = TypeVar("T")
 
-__all__ = ["LEGACY_SUBPROTOCOL", "SDK_SUBPROTOCOL", "SubprotocolRelay", "rewrite_protocol"]
+__all__ = [
+    "LEGACY_SUBPROTOCOL",
+    "SDK_SUBPROTOCOL",
+    "TIMEOUTS",
+    "SubprotocolRelay",
+    "rewrite_protocol",
+]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +51,12 @@ START_TIMEOUT = 5.0
 """Seconds the relay's thread has to start listening, and to stop."""
 SHUTDOWN_GRACE = 0.5
 """Seconds :meth:`SubprotocolRelay.close` lets open connections end on their own."""
+TIMEOUTS: tuple[type[Exception], ...] = (
+    TimeoutError,
+    asyncio.TimeoutError,
+    concurrent.futures.TimeoutError,
+)
+"""What a timed-out wait raises: one class from Python 3.11, three before."""
 _CHUNK = 64 * 1024  # bytes copied at a time
 _HEADER = "sec-websocket-protocol"
 _END = b"\r\n\r\n"  # the end of an HTTP head
@@ -166,7 +179,7 @@ class SubprotocolRelay:
         peer = writer.get_extra_info("peername")
         try:
             await self._relay(reader, writer)
-        except (OSError, EOFError, asyncio.LimitOverrunError, TimeoutError) as err:
+        except (OSError, EOFError, asyncio.LimitOverrunError, *TIMEOUTS) as err:
             # A client that goes away mid-handshake, or an SDK server that is stopping.
             log.debug("Foxglove relay: dropped %s: %s", peer, err or type(err).__name__)
         except asyncio.CancelledError:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from hardware.bag import messages as m
 from hardware.bag.writer import MessageWriter
-from hardware.foxglove_relay import SubprotocolRelay
+from hardware.foxglove_relay import TIMEOUTS, SubprotocolRelay
 from hardware.recording import WriterSink
 from tensegrity_gym.model.checks import check_whole
 from tensegrity_gym.model.samples import seconds_to_ns
@@ -179,11 +179,15 @@ class FoxgloveSink(WriterSink):
         server, self._server = self._server, None
         if server is None:
             return
-        server.stop()  # it sends its clients a close frame, through the relay
-        self._relay.close()
-        for channel in self._channels.values():
-            channel.close()
-        self._channels.clear()
+        try:
+            server.stop()  # it sends its clients a close frame, through the relay
+        finally:
+            try:
+                self._relay.close()
+            finally:
+                for channel in self._channels.values():
+                    channel.close()
+                self._channels.clear()
         _wait_until_closed(self.host, self.port, STOP_TIMEOUT)
         log.info("Foxglove live view at %s stopped", self.url)
 
@@ -200,7 +204,7 @@ def _start(foxglove: Any, context: Any, host: str, port: int) -> tuple[Any, Subp
         raise ViewerError(f"cannot start the Foxglove server: {err}") from None
     try:
         relay = SubprotocolRelay(server.port, host=host, port=port)
-    except OSError as err:
+    except (OSError, *TIMEOUTS) as err:
         server.stop()
         raise ViewerError(f"cannot start the Foxglove server on {host}:{port}: {err}") from None
     return server, relay

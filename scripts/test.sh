@@ -8,8 +8,8 @@ python -m mypy tensegrity_gym estimation hardware agents
 # The documentation site, strict (a broken link or anchor, a docstring griffe cannot read,
 # fails it), built into a temporary folder.
 docs_site="$(mktemp -d)"
+trap 'rm -rf "$docs_site"' EXIT
 NO_MKDOCS_2_WARNING=1 python -m mkdocs build --strict --quiet --site-dir "$docs_site"
-rm -rf "$docs_site"
 # pytest exits 5 when it collects nothing: that fails this script, as it should.
 # loadgroup: the tests of one xdist_group (the Ray cluster's) share a worker and its fixture.
 python -m pytest -n 2 --dist loadgroup -q "$@"

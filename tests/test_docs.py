@@ -15,8 +15,6 @@ if TYPE_CHECKING:
 
 ROOT = Path(__file__).resolve().parent.parent
 
-pytest.importorskip("mkdocs")
-
 
 def _load(name: str) -> ModuleType:
     spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
@@ -146,3 +144,18 @@ def test_sphinx_roles_become_code_spans() -> None:
     plain = _load("griffe_extensions").plain_roles
     text = "see :class:`~a.b.C`, :meth:`D.f` and ``x``"
     assert plain(text) == "see ``C``, ``D.f`` and ``x``"
+
+
+@pytest.mark.parametrize("package", ["estimation.ukf", "estimation.inekf", "estimation.icp"])
+def test_a_papers_reference_is_written_alike_in_code_and_docs(package: str) -> None:
+    """The full reference an estimator's docstring gives is the references page's."""
+    import importlib
+    import re
+
+    doc = importlib.import_module(package).__doc__ or ""
+    found = re.search(r"Reference: (.*?)\n\n|Reference: (.*)$", doc, re.S)
+    assert found, f"{package}: no 'Reference:' in its docstring"
+    reference = " ".join((found.group(1) or found.group(2)).split()).rstrip(".")
+    page = " ".join((ROOT / "docs" / "references.md").read_text().split())
+    plain = re.sub(r"\*", "", page)  # the page sets the venue in italics
+    assert reference in plain, f"{package}: {reference!r} is not on docs/references.md"

@@ -109,26 +109,34 @@ def find_bags(path: str | Path) -> list[Path]:
 def _metadata(path: Path) -> dict[str, Any]:
     """The ``rosbag2_bagfile_information`` of the bag folder ``path``; empty where it has
     no ``metadata.yaml`` or one that does not read (the ``.mcap`` file says the rest)."""
+    file = path / "metadata.yaml"
+    if not file.exists():
+        return {}
     try:
-        doc = yaml.safe_load((path / "metadata.yaml").read_text())
-    except (OSError, ValueError, yaml.YAMLError):
+        doc = yaml.safe_load(file.read_text())
+    except (OSError, ValueError, yaml.YAMLError) as err:
+        log.warning(
+            "%s: unreadable (%s); reading the .mcap alone", file, " ".join(str(err).split())
+        )
         return {}
     info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
     return info if isinstance(info, dict) else {}
 
 
-def _bag_files(path: Path) -> tuple[list[Path], dict[tuple[str, str], str]]:
+def _bag_files(path: Path, info: dict[str, Any]) -> tuple[list[Path], dict[tuple[str, str], str]]:
     """The ``.mcap`` files of the bag at ``path``, and (topic, type) -> type hash where
-    ``metadata.yaml`` gives them."""
+    its ``metadata.yaml`` (``info``: :func:`_metadata`) gives them."""
     if path.is_file():
         return [path], {}
-    info = _metadata(path)
     storage = info.get("storage_identifier", "mcap")
     if isinstance(storage, str) and storage not in ("mcap", "sqlite3"):
         raise BagError(f"{path}: {storage!r} storage; MCAP and sqlite3 bags are read")
     names = info.get("relative_file_paths")
     listed = [path / n for n in names if isinstance(n, str)] if isinstance(names, list) else []
     mcaps = [p for p in listed if p.is_file()]
+    missing = [p.name for p in listed if not p.is_file()]
+    if mcaps and missing:  # a split bag short of a file would read as a shorter run
+        log.warning("%s: metadata.yaml lists %s, missing; reading the rest", path, missing)
     if not mcaps:
         mcaps = sorted(p for p in path.glob("*.mcap") if p.is_file())
         if len(mcaps) != 1:
@@ -148,12 +156,13 @@ def _bag_files(path: Path) -> tuple[list[Path], dict[tuple[str, str], str]]:
 def _open_storage(path: Path) -> McapBag | Sqlite3Bag:
     """The bag at ``path``: an MCAP bag opened chunk by chunk (see
     :mod:`hardware.bag.salvage`), or a sqlite3 one (:mod:`hardware.bag.sqlite_bag`)."""
-    if is_sqlite3_bag(path, _metadata(path).get("storage_identifier")):
+    info = _metadata(path) if path.is_dir() else {}
+    if is_sqlite3_bag(path, info.get("storage_identifier")):
         try:
             return Sqlite3Bag(path)
         except ValueError as err:
             raise BagError(f"{path}: cannot open the sqlite3 bag: {err}") from None
-    files, digests = _bag_files(path)
+    files, digests = _bag_files(path, info)
     opened: list[McapFile] = []
     try:
         for f in files:

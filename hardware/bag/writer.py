@@ -5,7 +5,7 @@ stores messages in chunks; the writer closes a chunk and hands it to the operati
 system every ``flush_period`` seconds of recorded time, so a process that dies (a
 crash, SIGKILL) leaves every message up to the last flush on disk, and
 :class:`hardware.bag.reader.BagReader` opens such a bag. Ctrl-C and SIGTERM close the
-bag properly (see ``agents/cli.py``).
+bag properly (see :func:`agents.cli.errors.terminate`).
 
 Times given to the writer are sample times (s from the source's clock origin); header
 stamps and log times are ``clock_origin_ns`` plus them, the robot's own clock, so a
