@@ -57,6 +57,8 @@ TIMEOUTS: tuple[type[Exception], ...] = (
     concurrent.futures.TimeoutError,
 )
 """What a timed-out wait raises: one class from Python 3.11, three before."""
+_DROPPED: tuple[type[Exception], ...] = (OSError, EOFError, asyncio.LimitOverrunError, *TIMEOUTS)
+"""What ends one client's connection without it being the relay's fault."""
 _CHUNK = 64 * 1024  # bytes copied at a time
 _HEADER = "sec-websocket-protocol"
 _END = b"\r\n\r\n"  # the end of an HTTP head
@@ -179,7 +181,7 @@ class SubprotocolRelay:
         peer = writer.get_extra_info("peername")
         try:
             await self._relay(reader, writer)
-        except (OSError, EOFError, asyncio.LimitOverrunError, *TIMEOUTS) as err:
+        except _DROPPED as err:
             # A client that goes away mid-handshake, or an SDK server that is stopping.
             log.debug("Foxglove relay: dropped %s: %s", peer, err or type(err).__name__)
         except asyncio.CancelledError:

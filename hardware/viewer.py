@@ -47,6 +47,8 @@ HEADER_PERIOD = 1.0
 """Seconds of run time between repeats of the header messages."""
 STOP_TIMEOUT = 2.0
 """Seconds ``close`` waits for the server to let go of its port."""
+_START_FAILURES: tuple[type[Exception], ...] = (OSError, *TIMEOUTS)
+"""What a server that cannot open its port raises."""
 
 
 class ViewerError(RuntimeError):
@@ -204,7 +206,7 @@ def _start(foxglove: Any, context: Any, host: str, port: int) -> tuple[Any, Subp
         raise ViewerError(f"cannot start the Foxglove server: {err}") from None
     try:
         relay = SubprotocolRelay(server.port, host=host, port=port)
-    except (OSError, *TIMEOUTS) as err:
+    except _START_FAILURES as err:
         server.stop()
         raise ViewerError(f"cannot start the Foxglove server on {host}:{port}: {err}") from None
     return server, relay
