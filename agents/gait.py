@@ -13,6 +13,7 @@ import numpy as np
 import tensegrity_gym  # noqa: F401  (registers the envs)
 from agents.evaluation.plots import plot_com_paths
 from tensegrity_gym.model.description import DEFAULT_GAIT
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -52,17 +53,19 @@ def run_gait(
     estimator: str = "ukf",
     gait: str = DEFAULT_GAIT,
     out: Path | None = None,
+    engine: str = DEFAULT_ENGINE,
 ) -> dict[str, Any]:
     """Roll the robot with its scripted gait ``gait`` (a name of the robot's
     ``gaits``: ``"forward"``, and for three_bar_large ``"backward"``, ``"left"``,
     ``"right"``) for ``steps`` control steps.
 
     Returns a summary (start and end of the true CoM, m; its distance and path length,
-    m; its heading change, degrees; support-face changes) and, if ``out`` is given,
-    writes ``com_path.png`` and ``summary.json`` there. ValueError, before any step, for
+    m; its heading change, degrees; support-face changes, the faces in turn and those it
+    rests on as each gait period starts) and, if ``out`` is given, writes
+    ``com_path.png`` and ``summary.json`` there. ValueError, before any step, for
     a gait the robot lacks.
     """
-    env = gym.make(env_id, estimator=estimator, max_episode_steps=steps)
+    env = gym.make(env_id, estimator=estimator, max_episode_steps=steps, engine=engine)
     inner = cast("TensegrityEnv", env.unwrapped)
     try:
         policy = FaceGait(inner.backend.description, inner.task, gait=gait)
@@ -100,6 +103,9 @@ def run_gait(
         "path_length": float(np.linalg.norm(np.diff(path[:, :2], axis=0), axis=1).sum()),
         **_turn(path, policy),
         "face_changes": sum(a != b for a, b in itertools.pairwise(faces)),
+        "faces": [list(f) for f, _ in itertools.groupby(faces)],
+        "rest_faces": [list(f) for f in faces[:: policy.hold_steps + policy.settle_steps]],
+        "engine": engine,
         "estimator": estimator,
         "estimation_error_rms": float(np.sqrt(np.mean(np.square(errors)))),
         "estimation_error_max": float(np.max(errors)),

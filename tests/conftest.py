@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import sys
 from typing import TYPE_CHECKING, Any
+
+# MuJoCo picks its OpenGL platform when it is first imported, and a test module may import
+# it before tensegrity_gym.sim.mujoco_world asks for EGL: headless, ask for it here.
+if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+    os.environ.setdefault("MUJOCO_GL", "egl")
 
 import gymnasium as gym
 import pytest

@@ -1,6 +1,6 @@
 """The layer rules of docs/architecture.md: imports go one way, by statement or by name (a
-``"module:attribute"`` string, an ``import_module`` argument), and only the sim imports
-pybullet."""
+``"module:attribute"`` string, an ``import_module`` argument), and only the sim's worlds import
+pybullet and mujoco, one module each."""
 
 from __future__ import annotations
 
@@ -127,6 +127,13 @@ def test_only_the_sim_world_imports_pybullet() -> None:
         if any(n.split(".")[0] == "pybullet" for n in _imports(f, named=False))
     ]
     assert users == ["tensegrity_gym.sim.world"]
+
+
+def test_only_the_mujoco_world_imports_mujoco() -> None:
+    users = [
+        m for m, f in MODULES if any(n.split(".")[0] == "mujoco" for n in _imports(f, named=False))
+    ]
+    assert users == ["tensegrity_gym.sim.mujoco_world"]
 
 
 def test_nothing_imports_agents() -> None:

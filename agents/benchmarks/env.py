@@ -35,7 +35,8 @@ def rss_mb(pid: int | str = "self") -> float:
 
 
 def _bare_physics_rate(env: Any, steps: int) -> float:
-    """Physics steps per second of the same bodies with no cables, sensors or env."""
+    """Physics steps per second of the engine alone: PyBullet's bodies with no cables,
+    MuJoCo's model (its cables included), no sensors or env."""
     world = env.unwrapped.backend.world
     t = time.perf_counter()
     world.step_bare(steps)
@@ -54,10 +55,11 @@ def _timed_steps(env: Any, actions: NDArray[np.float32], clock: Callable[[], flo
 
 
 def bench_env_speed(
-    env_id: str, steps: int, estimator: str = "oracle", seed: int = 0
+    env_id: str, steps: int, estimator: str = "oracle", seed: int = 0, engine: str = "pybullet"
 ) -> dict[str, Any]:
-    """Env steps per second under uniformly random actions, resets included."""
-    env = gym.make(env_id, estimator=estimator)
+    """Env steps per second under uniformly random actions, resets included, on the
+    physics ``engine``."""
+    env = gym.make(env_id, estimator=estimator, engine=engine)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     shape = env.action_space.shape or ()
@@ -72,6 +74,7 @@ def bench_env_speed(
     env.close()
     return {
         "env": env_id,
+        "engine": engine,
         "estimator": estimator,
         "steps": steps,
         "env_steps_per_s": round(rate, 1),
@@ -120,9 +123,12 @@ def bench_env_speed_ratio(
     }
 
 
-def bench_memory(env_id: str, steps: int, seed: int = 0) -> dict[str, Any]:
-    """Growth of the process (MB) over ``steps`` env steps with episodes resetting."""
-    env = gym.make(env_id, estimator="ukf")
+def bench_memory(
+    env_id: str, steps: int, seed: int = 0, engine: str = "pybullet"
+) -> dict[str, Any]:
+    """Growth of the process (MB) over ``steps`` env steps with episodes resetting, on the
+    physics ``engine``."""
+    env = gym.make(env_id, estimator="ukf", engine=engine)
     rng = np.random.default_rng(seed)
     env.reset(seed=seed)
     shape = env.action_space.shape

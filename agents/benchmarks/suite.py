@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 from agents.benchmarks.env import bench_env_speed, bench_env_speed_ratio, bench_memory
 from agents.training.cluster import executor
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE
 
 if TYPE_CHECKING:
     from agents.training.cluster import Executor
@@ -99,6 +100,8 @@ def run_benchmarks(
     soak_minutes: float = 0.0,
     sim2real: bool = False,
     ray_address: str | None = None,
+    engines: bool = False,
+    engine: str | None = None,
 ) -> dict[str, Any]:
     """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.benchmarks.bags`) and
     the robot link against the emulator (:mod:`agents.benchmarks.link`, ``link_steps`` 10 Hz
@@ -107,10 +110,16 @@ def run_benchmarks(
     ``sim2real``, the UKF in randomised worlds and system identification
     (:mod:`agents.benchmarks.sim2real`); with ``ray_address``, the Ray vec env against
     ``SubprocVecEnv`` and the sizing model's costs (:mod:`agents.benchmarks.ray_cluster`), and the
-    estimation study's replays as Ray tasks on that cluster."""
+    estimation study's replays as Ray tasks on that cluster; with ``engines``, the physics
+    engines side by side (:mod:`agents.benchmarks.engines`). ``engine`` runs the env
+    speed and memory figures on that physics engine (None: the default)."""
     with executor(ray_address) as jobs:
         results = _run(speed_steps, memory_steps, estimation, bag_minutes, link_steps,
-                       soak_minutes, sim2real, jobs)  # fmt: skip
+                       soak_minutes, sim2real, jobs, engine)  # fmt: skip
+        if engines:
+            from agents.benchmarks.engines import bench_engines
+
+            results["engines"] = bench_engines(steps=max(speed_steps // 5, 100))
         if not jobs.local:
             from agents.benchmarks.ray_cluster import bench_ray
 
@@ -127,8 +136,10 @@ def _run(
     soak_minutes: float,
     sim2real: bool,
     jobs: Executor,
+    engine: str | None = None,
 ) -> dict[str, Any]:
     """:func:`run_benchmarks` but the Ray part; the estimation study's jobs on ``jobs``."""
+    on = engine or DEFAULT_ENGINE
     results: dict[str, Any] = {
         "machine": {
             "platform": platform.platform(),
@@ -137,11 +148,13 @@ def _run(
             "python": platform.python_version(),
         },
         "speed": [
-            bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps),
-            bench_env_speed("tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100)),
-            bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps, estimator="ukf"),
+            bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps, engine=on),
             bench_env_speed(
-                "tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100), estimator="ukf"
+                "tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100), engine=on
+            ),
+            bench_env_speed("tensegrity_gym/ThreeBarRoll-v0", speed_steps, "ukf", engine=on),
+            bench_env_speed(
+                "tensegrity_gym/SuperBallRoll-v0", max(speed_steps // 2, 100), "ukf", engine=on
             ),
         ],
         "targets": {
@@ -166,5 +179,5 @@ def _run(
     if link_steps > 0 or soak_minutes > 0:
         results["link"] = _bench_link(link_steps, soak_minutes)
     if memory_steps > 0:
-        results["memory"] = bench_memory("tensegrity_gym/ThreeBarRoll-v0", memory_steps)
+        results["memory"] = bench_memory("tensegrity_gym/ThreeBarRoll-v0", memory_steps, engine=on)
     return results

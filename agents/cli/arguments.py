@@ -197,6 +197,17 @@ def env_help(what: str = "env id") -> str:
     return f"{what}; registered: {', '.join(tensegrity_gym.env_ids(hardware=None))}"
 
 
+def add_engine(parser: argparse.ArgumentParser) -> None:
+    """``--engine``: the simulator's physics engine (None, its default: ``pybullet``)."""
+    from tensegrity_gym.sim.engines import DEFAULT_ENGINE, ENGINES
+
+    parser.add_argument(
+        "--engine", default=None, choices=list(ENGINES.names()),
+        help=f"the simulator's physics engine (default: {DEFAULT_ENGINE}; mujoco needs "
+        "pip install tensegrity-gym[mujoco])",
+    )  # fmt: skip
+
+
 def add_ray(parser: argparse.ArgumentParser, what: str) -> None:
     """``--ray ADDRESS``: run ``what`` on a Ray cluster."""
     parser.add_argument(

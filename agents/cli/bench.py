@@ -7,7 +7,14 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from agents.cli.arguments import Command, add_ray, count, non_negative_float, positive_int
+from agents.cli.arguments import (
+    Command,
+    add_engine,
+    add_ray,
+    count,
+    non_negative_float,
+    positive_int,
+)
 
 if TYPE_CHECKING:
     import argparse
@@ -55,6 +62,13 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
         default=0.0,
         help="minutes of emulated operation watched for memory and latency growth",
     )
+    bench.add_argument(
+        "--engines",
+        action="store_true",
+        help="also compare the physics engines: MuJoCo's env against its bare mj_step and "
+        "against PyBullet's, with the oracle and the UKF (needs tensegrity-gym[mujoco])",
+    )
+    add_engine(bench)
     add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
 
@@ -72,6 +86,8 @@ def run_bench(args: argparse.Namespace) -> int:
         soak_minutes=args.soak_minutes,
         sim2real=args.sim2real,
         ray_address=args.ray,
+        engines=args.engines,
+        engine=args.engine,
     )
     text = json.dumps(results, indent=2)
     if args.out:

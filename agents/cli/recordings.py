@@ -11,6 +11,7 @@ from typing import Any
 
 from agents.cli.arguments import (
     Command,
+    add_engine,
     add_ray,
     calibration_seconds,
     count,
@@ -40,6 +41,7 @@ def add_record(rec: argparse.ArgumentParser) -> None:
     rec.add_argument("--estimator", default="ukf", choices=list(ESTIMATORS.names()),
                      help="the estimator run (and recorded) in the loop")  # fmt: skip
     rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
+    add_engine(rec)
     rec.add_argument("--out", required=True, help="folder for the bags (episode_000, ...)")
     rec.add_argument("--markers", action=argparse.BooleanOptionalAction, default=True,
                      help="write /tf and /tensegrity/markers (what ROS viewers draw) at the "
@@ -63,6 +65,7 @@ def run_record(args: argparse.Namespace) -> int:
             estimator=args.estimator,
             driver=args.driver,
             markers=args.markers,
+            engine=args.engine,
         )
     except KeyboardInterrupt:
         log.warning("interrupted: the bag being written was closed and is complete so far")
@@ -161,6 +164,7 @@ def add_calibrate(cal: argparse.ArgumentParser) -> None:
     cal.add_argument("--seconds", type=calibration_seconds, default=120.0,
                      help="length of that run (s)")  # fmt: skip
     cal.add_argument("--world-seed", type=count, default=0, help="the simulated lab's seed")
+    add_engine(cal)
     cal.add_argument("--robot", default=None, help="robot preset or YAML, for a bare bag")
     cal.add_argument("--out", required=True, help="the calibration file to write (YAML)")
 
@@ -171,7 +175,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     result = calibrate_command(
         bag=args.bag, env_id=args.env, seconds=args.seconds, world_seed=args.world_seed,
-        robot=args.robot, out=Path(args.out),
+        robot=args.robot, out=Path(args.out), engine=args.engine,
     )  # fmt: skip
     sys.stdout.write(result + "\n")
     return 0

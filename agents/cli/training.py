@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 from agents.cli.arguments import (
     Command,
+    add_engine,
     add_ray,
     count,
     env_help,
@@ -159,6 +160,7 @@ def add_train(tr: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_engine(tr)
     add_ray(tr, "step the envs on --workers Ray actors")
     tr.add_argument("--workers", type=positive_int, default=None,
                     help="Ray actors sharing the --n-envs envs (default: one per CPU of the "
@@ -166,7 +168,8 @@ def add_train(tr: argparse.ArgumentParser) -> None:
 
 
 _OWN_OPTIONS = {"estimator": "--estimator", "randomization": "--randomization",
-                "residual_gait": "--residual-gait", "robot": "--env", "task": "--env"}  # fmt: skip
+                "residual_gait": "--residual-gait", "robot": "--env", "task": "--env",
+                "engine": "--engine"}  # fmt: skip
 """``gym.make`` arguments that ``train`` has an option of its own for (the env id names
 the robot and the task)."""
 
@@ -178,7 +181,7 @@ def training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     for key in kwargs:
         if key in _OWN_OPTIONS:
             raise ValueError(f"--env-kwargs {key}: use {_OWN_OPTIONS[key]} instead")
-    return {**kwargs, **given(args, "randomization", "residual_gait")}
+    return {**kwargs, **given(args, "randomization", "residual_gait", "engine")}
 
 
 def run_train(args: argparse.Namespace) -> int:
@@ -226,6 +229,7 @@ def add_evaluate(ev: argparse.ArgumentParser) -> None:
     )
     ev.add_argument("--seed", type=count, default=1000, help="episode k uses seed + k")
     ev.add_argument("--out", required=True, help="folder for the report")
+    add_engine(ev)
     add_ray(ev, "run each episode as a Ray task")
 
 
@@ -241,6 +245,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             conditions=args.conditions,
             seed=args.seed,
             ray_address=args.ray,
+            engine=args.engine,
         )
     except ValueError as err:
         log.error("%s", one_line(err))
@@ -273,6 +278,7 @@ def add_gait(gait: argparse.ArgumentParser) -> None:
         "the list",
     )
     gait.add_argument("--out", default="gait_out", help="folder for the plot and summary")
+    add_engine(gait)
 
 
 def run_gait(args: argparse.Namespace) -> int:
@@ -287,6 +293,7 @@ def run_gait(args: argparse.Namespace) -> int:
         estimator=args.estimator,
         gait=args.gait,
         out=Path(args.out),
+        **given(args, "engine"),
     )
     s, e = summary["com_start"], summary["com_end"]
     sys.stdout.write(

@@ -450,9 +450,11 @@ def evaluate_policies(
     episodes: int,
     seed: int = 1000,
     executor: Executor | None = None,
+    engine: str | None = None,
 ) -> dict[str, dict[str, list[EpisodeResult]]]:
     """Every policy under every condition, ``episodes`` episodes each with seeds ``seed``,
-    ``seed+1``...: ``results[policy name][condition name]``. Each episode is a job of
+    ``seed+1``...: ``results[policy name][condition name]``, simulated by ``engine``
+    (None: the default physics engine). Each episode is a job of
     ``executor`` (default: here, one after the other; an
     :class:`agents.training.cluster.RayExecutor`
     runs them as Ray tasks, with the same results: an episode depends on its seed alone)."""
@@ -474,7 +476,7 @@ def evaluate_policies(
         for c in range(len(conditions))
         for k in range(episodes)
     ]
-    run = partial(_episode, tuple(policies), tuple(conditions))
+    run = partial(_episode, tuple(policies), tuple(conditions), engine)
     try:
         done = (executor or LocalExecutor()).map(run, jobs)
     finally:
@@ -503,17 +505,19 @@ under: the next episodes under the same reuse it (an episode depends on its seed
 
 
 def _condition_env(
-    env_id: str, condition: Condition, env_kwargs: dict[str, Any]
+    env_id: str, condition: Condition, env_kwargs: dict[str, Any], engine: str | None = None
 ) -> gym.Env[Any, Any]:
     """The env of ``env_id`` under ``condition`` whose actions mean what ``env_kwargs``
-    (:attr:`LoadedPolicy.env_kwargs`) says, made once per process and condition."""
-    key = (env_id, condition, tuple(sorted(env_kwargs.items())))
+    (:attr:`LoadedPolicy.env_kwargs`) says, on ``engine`` (None: the default), made once
+    per process and condition."""
+    key = (env_id, condition, tuple(sorted(env_kwargs.items())), engine)
     if key not in _ENV:
         _release_env()
         robot = gym.spec(env_id).kwargs.get("robot", "three_bar")
         description = load_robot(robot)
         if condition.sensing is not None:
             description = condition.sensing(description)
+        world: dict[str, Any] = {} if engine is None else {"engine": engine}
         _ENV[key] = gym.make(
             env_id,
             robot=description,
@@ -521,6 +525,7 @@ def _condition_env(
             calibration=condition.calibration,
             randomization=condition.randomization,
             **env_kwargs,
+            **world,
         )
     return _ENV[key]
 
@@ -533,12 +538,15 @@ def _release_env() -> None:
 
 
 def _episode(
-    policies: Sequence[LoadedPolicy], conditions: Sequence[Condition], job: tuple[int, int, int]
+    policies: Sequence[LoadedPolicy],
+    conditions: Sequence[Condition],
+    engine: str | None,
+    job: tuple[int, int, int],
 ) -> EpisodeResult:
     """One episode, ``job`` = (policy index, condition index, seed): the job that
     :func:`evaluate_policies` maps, here or on a Ray worker."""
     policy, condition = policies[job[0]], conditions[job[1]]
-    env = _condition_env(policy.env_id, condition, policy.env_kwargs)
+    env = _condition_env(policy.env_id, condition, policy.env_kwargs, engine)
     policy.new_episode(job[2])
     try:
         return run_episode(env, policy.act, job[2])

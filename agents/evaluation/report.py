@@ -26,6 +26,7 @@ from agents.evaluation.evaluate import (
 )
 from agents.evaluation.plots import pyplot
 from agents.training.cluster import executor
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE
 
 if TYPE_CHECKING:
     from collections.abc import Sequence
@@ -149,10 +150,13 @@ def write_report(
     seed: int = 1000,
     include_random: bool = True,
     ray_address: str | None = None,
+    engine: str | None = None,
 ) -> dict[str, Any]:
     """Evaluate the trained policies of ``run_dirs`` (and a random policy) under
     ``conditions``; write ``report.md``, ``report.json`` and the plots into ``out``.
-    ``ray_address``: the episodes run as tasks on that Ray cluster (the same numbers)."""
+    ``ray_address``: the episodes run as tasks on that Ray cluster (the same numbers);
+    ``engine``: the physics engine they run on (None: the default; a policy trained on
+    one engine can be evaluated on the other)."""
     chosen = {c: condition(c) for c in conditions}  # an unknown name is refused here
     if not run_dirs:
         raise ValueError("no trained model to evaluate")
@@ -179,7 +183,7 @@ def write_report(
     out.mkdir(parents=True, exist_ok=True)
     log.info("evaluating %s under %s", [p.name for p in policies], list(conditions))
     with executor(ray_address) as jobs:
-        results = evaluate_policies(policies, list(chosen.values()), episodes, seed, jobs)
+        results = evaluate_policies(policies, list(chosen.values()), episodes, seed, jobs, engine)
     table = {p: {c: summarise(r) for c, r in by_cond.items()} for p, by_cond in results.items()}
     checks = _checks(table, [p.name for p in trained], conditions) if include_random else {}
 
@@ -192,6 +196,7 @@ def write_report(
         "env": env_id,
         "episodes": episodes,
         "seed": seed,
+        "engine": engine or DEFAULT_ENGINE,
         "conditions": {c: chosen[c].about for c in conditions},
         "results": table,
         "checks": checks,

@@ -18,6 +18,7 @@ from tensegrity_gym.envs.calibration_run import (
     record_calibration_run,
 )
 from tensegrity_gym.model.samples import UwbRangeSample
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE
 
 if TYPE_CHECKING:
     import os
@@ -47,16 +48,20 @@ def _bag_ranges(
 
 
 def _simulated_ranges(
-    env_id: str, seconds: float, world_seed: int
+    env_id: str, seconds: float, world_seed: int, engine: str | None = None
 ) -> tuple[list[UwbRangeSample], RobotDescription]:
-    """The ranges of a calibration run of ``env_id``'s robot in the world ``world_seed``."""
+    """The ranges of a calibration run of ``env_id``'s robot in the world ``world_seed``,
+    simulated by ``engine`` (None: the default)."""
     import gymnasium as gym
 
     made = gym.make(env_id, estimator="oracle", calibration="true", world_seed=world_seed)
     d = made.unwrapped.backend.description  # type: ignore[attr-defined]
     made.close()
     seconds = check_seconds(seconds, d)  # the UWB rate is the robot's
-    return record_calibration_run(d, world_seed=world_seed, seconds=seconds).samples, d
+    run = record_calibration_run(
+        d, world_seed=world_seed, seconds=seconds, engine=engine or DEFAULT_ENGINE
+    )
+    return run.samples, d
 
 
 def calibrate_command(
@@ -67,6 +72,7 @@ def calibrate_command(
     world_seed: int,
     robot: str | None,
     out: Path,
+    engine: str | None = None,
 ) -> str:
     """``tensegrity-gym calibrate``: calibrate from a bag, or from a calibration run of
     ``env_id`` in the world ``world_seed`` lasting ``seconds`` (see
@@ -78,6 +84,8 @@ def calibrate_command(
     """
     if (bag is None) == (env_id is None):
         raise ValueError("calibrate: give either a BAG or --env ID")
+    if bag is not None and engine is not None:
+        raise ValueError("calibrate: --engine simulates a calibration run (--env); a bag has none")
     if isinstance(world_seed, bool) or not isinstance(world_seed, int) or world_seed < 0:
         raise ValueError(f"calibrate: world_seed={world_seed!r} must be an int >= 0")
     seconds = check_seconds(seconds)
@@ -85,7 +93,7 @@ def calibrate_command(
     if bag is not None:
         samples, d = _bag_ranges(bag, robot)
     elif env_id is not None:
-        samples, d = _simulated_ranges(env_id, seconds, world_seed)
+        samples, d = _simulated_ranges(env_id, seconds, world_seed, engine)
     try:
         result = lab_calibration(samples, d, world_seed)
     except CalibrationError as error:

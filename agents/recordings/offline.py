@@ -145,10 +145,12 @@ def record(
     flush_period: float = 1.0,
     driver: str | None = None,
     markers: bool = True,
+    engine: str | None = None,
 ) -> list[Path]:
     """Run ``episodes`` episodes of ``policy`` on ``env_id`` and write one bag each into
     ``out``; ``driver`` (``"zenoh/tcp/HOST:PORT"``) runs a robot on the network instead
-    of the id's default; ``markers`` writes what viewers draw (``/tf``, the robot as
+    of the id's default; ``engine`` the simulator's physics engine (None: the default);
+    ``markers`` writes what viewers draw (``/tf``, the robot as
     markers) at the control rate. Returns the bags written. An interruption (Ctrl-C, SIGTERM)
     closes the current bag properly before it propagates; a run that fails before it
     wrote anything removes the folders it made for ``out``."""
@@ -156,8 +158,11 @@ def record(
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     new = _new_folders(Path(out))
     try:
-        return _record(env_id, policy, episodes, out, steps, seed, estimator, flush_period, driver,
-                       markers)  # fmt: skip
+        kwargs: dict[str, Any] = {"estimator": estimator, "record_dir": out}
+        kwargs |= {k: v for k, v in (("driver", driver), ("engine", engine)) if v is not None}
+        if steps is not None:
+            kwargs["max_episode_steps"] = steps
+        return _record(env_id, policy, episodes, seed, flush_period, markers, kwargs)
     except BaseException:
         _remove_if_empty(new)  # a run that failed before its first bag leaves no folder
         raise
@@ -188,20 +193,13 @@ def _record(
     env_id: str,
     policy: str,
     episodes: int,
-    out: Path,
-    steps: int | None,
     seed: int,
-    estimator: str,
     flush_period: float,
-    driver: str | None,
     markers: bool,
+    kwargs: dict[str, Any],
 ) -> list[Path]:
-    """:func:`record`'s episodes, once its arguments are checked."""
-    kwargs: dict[str, Any] = {"estimator": estimator, "record_dir": out}
-    if driver is not None:
-        kwargs["driver"] = driver
-    if steps is not None:
-        kwargs["max_episode_steps"] = steps
+    """:func:`record`'s episodes, once its arguments are checked; ``kwargs`` go to
+    ``gym.make``."""
     env = gym.make(env_id, **kwargs, **policy_env_kwargs(policy))
     inner = cast("TensegrityEnv", env.unwrapped)
     backend = inner.backend

@@ -53,6 +53,7 @@ from tensegrity_gym.envs.calibration import (
 from tensegrity_gym.envs.factory import make_env
 from tensegrity_gym.model.kinematics import yaw_kabsch
 from tensegrity_gym.model.samples import UwbRangeSample
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -193,6 +194,7 @@ def record_calibration_run(
     seconds: float = CALIBRATION_SECONDS,
     control_period: float = 0.1,
     time_step: float = 0.001,
+    engine: str = DEFAULT_ENGINE,
 ) -> CalibrationRun:
     """A calibration run of ``seconds`` (in [:func:`min_seconds`, :data:`MAX_SECONDS`])
     in the world ``world_seed`` draws: legs of :data:`EPISODE_SECONDS` under the
@@ -200,7 +202,7 @@ def record_calibration_run(
     their times one after the other, :data:`LEG_GAP` apart."""
     seconds = check_seconds(seconds, description, where="record_calibration_run")
     legs = np.random.default_rng(world_seed)
-    return _simulate(description, world_seed, seconds, legs, control_period, time_step)
+    return _simulate(description, world_seed, seconds, legs, control_period, time_step, engine)
 
 
 def _simulate(
@@ -210,12 +212,13 @@ def _simulate(
     legs: np.random.Generator,
     control_period: float,
     time_step: float,
+    engine: str = DEFAULT_ENGINE,
 ) -> CalibrationRun:
     """:func:`record_calibration_run` of any length, ``legs`` drawing each leg's reset."""
     env = make_env(
         description, estimator="oracle", calibration="true", world_seed=world_seed,
         spawn_radius=_spawn_radius(description), control_period=control_period,
-        time_step=time_step,
+        time_step=time_step, engine=engine,
     )  # fmt: skip
     world = cast("Any", env.backend).uwb
     sink = MemorySink()
@@ -284,8 +287,9 @@ def _cached(
                        path, description.name, reason)  # fmt: skip
         return None
     legs = np.random.default_rng((world_seed, CHECK_STREAM))
-    fit = range_fit(cached, _simulate(description, world_seed, CHECK_SECONDS, legs, **run).samples,
-                    description)  # fmt: skip
+    checked = _simulate(description, world_seed, CHECK_SECONDS, legs, run["control_period"],
+                        run["time_step"])  # fmt: skip
+    fit = range_fit(cached, checked.samples, description)
     if not fit.checked:  # too few ranges to judge (a sparse robot): a new one fares no better
         logger.warning("calibration cache %s: too few ranges in %g s to check it (%d); "
                        "used as it is", path, CHECK_SECONDS, fit.n_ranges)  # fmt: skip
@@ -328,8 +332,9 @@ def estimated_uwb_calibration(
         "calibrating UWB for %s, world %d (%g s run)", description.name, world_seed, seconds
     )
     samples = record_calibration_run(
-        description, world_seed=world_seed, seconds=seconds, **run
-    ).samples
+        description, world_seed=world_seed, seconds=seconds, control_period=control_period,
+        time_step=time_step,
+    ).samples  # fmt: skip
     try:
         result = lab_calibration(samples, description, world_seed)
         if result.quality == "failed":

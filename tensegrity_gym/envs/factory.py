@@ -14,6 +14,7 @@ from tensegrity_gym.model.description import DEFAULT_GAIT, RobotDescription, loa
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
 from tensegrity_gym.model.randomization import Randomization, resolve_randomization
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE, check_engine
 from tensegrity_gym.sim.terrain import Terrain, terrain_builder
 from tensegrity_gym.sim.world import has_display
 from tensegrity_gym.tasks.gaits import FaceGait
@@ -41,6 +42,9 @@ def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
         return name
     spec = estimator_spec(name)
     if spec.camera and hasattr(backend, "camera"):
+        problem = backend.render_problem() if hasattr(backend, "render_problem") else None
+        if problem is not None:
+            raise ValueError(f"make: estimator {name!r} needs the RGB-D camera: {problem}")
         backend.camera = True  # the simulator says rgbd only while it renders frames
     missing = spec.missing(backend_sample_kinds(backend), backend.description.name)
     if missing is not None:
@@ -87,12 +91,13 @@ def make_backend(
     terrain: str | os.PathLike[str] | Terrain = "flat",
     world_seed: int = 0,
     randomization: Randomization | None = None,
+    engine: str = DEFAULT_ENGINE,
 ) -> Backend:
     """The backend a ``driver`` names: None for PyBullet (on ``terrain``, see
     :mod:`tensegrity_gym.sim.terrain`), ``"zenoh/tcp/HOST:PORT"`` for a robot on the
     network (:class:`hardware.link.ZenohDriver`), ``"bag:PATH"`` to replay a recorded
     bag, or a Backend object (its robot must be ``description``'s). ``randomization``
-    applies to the simulator alone."""
+    and ``engine`` apply to the simulator alone."""
     if driver is None:
         from tensegrity_gym.sim.backend import SimBackend
 
@@ -105,6 +110,12 @@ def make_backend(
             terrain=terrain,
             world_seed=world_seed,
             randomization=randomization,
+            engine=engine,
+        )
+    if engine != DEFAULT_ENGINE:
+        raise ValueError(
+            f"make: engine={engine!r} picks the simulator's physics; driver={driver!r} has "
+            f"a real robot: leave engine at {DEFAULT_ENGINE!r}"
         )
     if randomization is not None:
         raise ValueError(
@@ -179,11 +190,20 @@ def _check_arguments(
         )
 
 
-def _window(render_mode: object) -> bool:
+def _window(render_mode: object, engine: str = DEFAULT_ENGINE) -> bool:
     """Whether to open PyBullet's window: for ``render_mode="human"`` where there is a
-    display. Without one (a headless Linux machine) the env warns and runs without it,
-    so that ``check_env`` and scripts written for a desktop run there too."""
+    display. Without one (a headless Linux machine), or on another engine, the env warns
+    and runs without it, so that ``check_env`` and scripts written for a desktop run
+    there too."""
     if render_mode != "human":
+        return False
+    if engine != DEFAULT_ENGINE:
+        warnings.warn(
+            f"render_mode='human' opens PyBullet's window; engine {engine!r} has none here: "
+            "use render_mode='rgb_array' for frames",
+            RuntimeWarning,
+            stacklevel=3,
+        )
         return False
     if has_display():
         return True
@@ -207,6 +227,7 @@ def make_env(
     spawn_radius: float = 0.0,
     control_period: float = 0.1,
     time_step: float = 0.001,
+    engine: str = DEFAULT_ENGINE,
     terrain: str | Path | Terrain = "flat",
     calibration: str | Path = "estimated",
     world_seed: int = 0,
@@ -244,6 +265,10 @@ def make_env(
             (run time per wall-clock time; 0: as fast as the run goes).
         spawn_radius: the start position is drawn within this radius (m).
         control_period, time_step: seconds per env step and per physics step.
+        engine: the simulator's physics engine (:mod:`tensegrity_gym.sim.engines`):
+            ``"pybullet"`` (the default) or ``"mujoco"`` (``pip install
+            tensegrity-gym[mujoco]``), the same robot from the same description, the
+            same sensor models; only with the simulator (no ``driver``).
         terrain: the simulator's ground (:mod:`tensegrity_gym.sim.terrain`): ``"flat"``
             (the default), ``"valley"`` (a ring-shaped trough around the start),
             ``"rough"`` (smooth random bumps drawn at each reset from its seed), a lab's
@@ -298,6 +323,10 @@ def make_env(
         viewer_port=viewer_port,
         viewer_speed=viewer_speed,
     )
+    try:
+        check_engine(engine)  # an unknown or uninstalled engine is refused here, in a line
+    except (ValueError, ImportError) as err:
+        raise type(err)(f"make: {err}") from None
     check_calibration(calibration, world_seed)
     _check_residual(description, residual_gait, base_gait, observe_base, residual_deadband)
     ranges = resolve_randomization(randomization)
@@ -308,11 +337,12 @@ def make_env(
         driver,
         control_period=control_period,
         time_step=time_step,
-        gui=_window(render_mode),
+        gui=_window(render_mode, engine),
         spawn_radius=spawn_radius,
         terrain=terrain,
         world_seed=world_seed,
         randomization=ranges,
+        engine=engine,
     )
     try:
         source = apply_calibration(

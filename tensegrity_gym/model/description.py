@@ -100,6 +100,16 @@ class Rod:
     mass: float
     color: tuple[float, float, float, float]
 
+    @property
+    def inertia(self) -> tuple[float, float, float]:
+        """Principal moments of inertia (kg m^2) about the rod's centre, in its frame
+        (z along the rod): a solid cylinder's, ``m (3 r^2 + L^2) / 12`` across and
+        ``m r^2 / 2`` along. The endcaps' own share is left out, as the description
+        gives one mass per rod."""
+        m, r, length = self.mass, self.radius, self.length
+        across = m * (3.0 * r * r + length * length) / 12.0
+        return across, across, 0.5 * m * r * r
+
 
 @dataclass(frozen=True)
 class Motor:

@@ -10,13 +10,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from numpy.typing import NDArray
+    from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "center_of_mass",
     "member_lengths",
     "rod_axes",
     "rod_centres",
+    "rod_node_states",
     "rod_quaternion_from_axis",
     "weighted_kabsch",
     "yaw_kabsch",
@@ -71,6 +72,35 @@ def rod_quaternion_from_axis(axis: NDArray[np.float64]) -> NDArray[np.float64]:
     flip = w[..., 0] < 1e-9
     q[flip] = np.array([1.0, 0.0, 0.0, 0.0])
     return np.asarray(q / np.linalg.norm(q, axis=-1, keepdims=True))
+
+
+def rod_node_states(
+    positions: ArrayLike,
+    quaternions: ArrayLike,
+    linear: ArrayLike,
+    angular: ArrayLike,
+    half_lengths: ArrayLike,
+    rod_nodes: NDArray[np.intp],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Node positions (m) and velocities (m/s), each (n, 3), of rigid rods: centres
+    (r, 3), quaternions (r, 4) (x, y, z, w), linear and angular velocities (r, 3) in the
+    world frame, half lengths (r,) (m); a rod's first node lies at its centre minus half
+    its length along its body z, its second at plus."""
+    q = np.asarray(quaternions, dtype=np.float64)
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    h = np.asarray(half_lengths, dtype=np.float64)
+    # The body z axis times the half length: centre to second node (r, 3).
+    arm = np.stack(
+        [2.0 * (x * z + w * y) * h, 2.0 * (y * z - w * x) * h, (1.0 - 2.0 * (x * x + y * y)) * h],
+        axis=1,
+    )
+    spin = np.cross(np.asarray(angular, dtype=np.float64), arm)
+    p, v = np.asarray(positions, dtype=np.float64), np.asarray(linear, dtype=np.float64)
+    n = 2 * len(rod_nodes)
+    nodes, velocities = np.empty((n, 3)), np.empty((n, 3))
+    nodes[rod_nodes[:, 0]], nodes[rod_nodes[:, 1]] = p - arm, p + arm
+    velocities[rod_nodes[:, 0]], velocities[rod_nodes[:, 1]] = v - spin, v + spin
+    return nodes, velocities
 
 
 def weighted_kabsch(

@@ -53,12 +53,10 @@ def _shape(
 
 
 def _inertial(link: ET.Element, rod: Rod) -> None:
-    """The rod's mass (kg) at its centre and a solid cylinder's inertia tensor (kg m^2)
-    about it: ``m (3 r^2 + L^2) / 12`` across the rod, ``m r^2 / 2`` along it (z).
-    The endcaps' own share is left out, as the description gives one mass per rod."""
-    m, r, length = rod.mass, rod.radius, rod.length
-    across = m * (3.0 * r * r + length * length) / 12.0
-    along = 0.5 * m * r * r
+    """The rod's mass (kg) at its centre and its inertia tensor (kg m^2) about it
+    (:attr:`Rod.inertia <tensegrity_gym.model.description.Rod.inertia>`)."""
+    m = rod.mass
+    across, _, along = rod.inertia
     inertial = ET.SubElement(link, "inertial")
     ET.SubElement(inertial, "origin", xyz="0 0 0", rpy="0 0 0")
     ET.SubElement(inertial, "mass", value=_exact(m))

@@ -1,4 +1,5 @@
-"""The simulation backend: a PyBullet robot and its sensor suite behind :class:`Backend`."""
+"""The simulation backend: a simulated robot (PyBullet or MuJoCo, :mod:`tensegrity_gym.sim.engines`)
+and its sensor suite behind :class:`Backend`."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from tensegrity_gym.model.kinematics import center_of_mass
 from tensegrity_gym.model.lie import quat_multiply, quat_rotate
 from tensegrity_gym.model.protocols import SensorCalibration, StepResult, UwbCalibration
 from tensegrity_gym.model.samples import GROUND_TRUTH, GroundTruth
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE, engine_spec
 from tensegrity_gym.sim.sensors import (
     CableLengthModel,
     CameraModel,
@@ -27,7 +29,7 @@ from tensegrity_gym.sim.sensors import (
     UwbModel,
 )
 from tensegrity_gym.sim.terrain import FixedTerrain, terrain_builder
-from tensegrity_gym.sim.world import PhysicsWorld, check_heightfield
+from tensegrity_gym.sim.world import check_heightfield
 
 if TYPE_CHECKING:
     import os
@@ -39,6 +41,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import ReadyCheck
     from tensegrity_gym.model.randomization import Randomization, WorldDraw
     from tensegrity_gym.model.samples import Sample
+    from tensegrity_gym.sim.engines import World
     from tensegrity_gym.sim.terrain import Terrain
     from tensegrity_gym.sim.world import Snapshot
 
@@ -83,15 +86,18 @@ whose packets were lost, say), before it hands over what it has."""
 
 @lru_cache(maxsize=8)
 def settled_pose(
-    description: RobotDescription, time_step: float, settle_time: float
+    description: RobotDescription,
+    time_step: float,
+    settle_time: float,
+    engine: str = DEFAULT_ENGINE,
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Rod positions (r, 3) and quaternions (r, 4) of the robot at rest on the ground,
     reached by letting the nominal shape settle for at least ``settle_time`` seconds and
     then until its nodes are still; centred so the CoM is above the origin.
 
-    Deterministic, so it is computed once per description and shared.
+    Deterministic, so it is computed once per description and ``engine`` and shared.
     """
-    world = PhysicsWorld(description, time_step)
+    world = engine_spec(engine).world(description, time_step)
     try:
         world.set_node_positions(description.initial_positions)
         targets = [description.rest_lengths[k] for k in description.actuated]
@@ -290,6 +296,8 @@ class SimBackend:
             world from (:mod:`tensegrity_gym.model.randomization`); the draws are in the
             reset's ``info["randomization"]``. :attr:`description` stays the nominal one
             (what the estimators get). None: the description, exactly.
+        engine: the physics engine's name (:data:`~tensegrity_gym.sim.engines.ENGINES`):
+            ``"pybullet"`` or ``"mujoco"``; the sensor models are the same on each.
     """
 
     def __init__(
@@ -306,6 +314,7 @@ class SimBackend:
         world_seed: int = 0,
         uwb_calibration: UwbCalibration | Callable[[], UwbCalibration] | None = None,
         randomization: Randomization | None = None,
+        engine: str = DEFAULT_ENGINE,
     ) -> None:
         steps = control_period / time_step
         if steps < 1 or abs(steps - round(steps)) > 1e-9:
@@ -332,7 +341,9 @@ class SimBackend:
         self.terrain: Terrain | None = None
         """This episode's ground, from :meth:`reset` on (for tests and tools)."""
         self._n_steps = round(steps)
-        self._world: PhysicsWorld | None = None
+        self.engine = engine
+        self._engine = engine_spec(engine)
+        self._world: World | None = None
         s = description.sensors
         self.imu = ImuModel(s.imu, description)
         self.encoder = EncoderModel(s.encoder, description)
@@ -371,7 +382,7 @@ class SimBackend:
         self._truth: GroundTruth | None = None
         self._closed = False
 
-    # Pickling ships the configuration, not the PyBullet client: a new one is made on
+    # Pickling ships the configuration, not the engine's world: a new one is made on
     # the other side (each process owns its client).
     def __getstate__(self) -> dict[str, Any]:
         return {
@@ -386,6 +397,7 @@ class SimBackend:
             "world_seed": self.world_seed,
             "uwb_calibration": self.uwb_calibration,
             "randomization": self.randomization,
+            "engine": self.engine,
         }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
@@ -393,12 +405,19 @@ class SimBackend:
         self.__init__(description, **state)  # type: ignore[misc]
 
     @property
-    def world(self) -> PhysicsWorld:
-        """The PyBullet world, built on first use; RuntimeError once :meth:`close` ran."""
+    def world(self) -> World:
+        """The engine's world, built on first use; RuntimeError once :meth:`close` ran."""
         if self._world is None:
             check_open(self._closed, "the simulation")
-            self._world = PhysicsWorld(self.description, self.time_step, gui=self.gui)
+            self._world = self._engine.world(self.description, self.time_step, gui=self.gui)
         return self._world
+
+    def render_problem(self) -> str | None:
+        """None where this engine renders the RGB-D camera on this machine, else why not."""
+        problem = self._engine.render_problem()
+        if problem is None:
+            return None
+        return f"engine {self.engine!r} cannot render on this machine ({problem})"
 
     @property
     def true_uwb(self) -> UwbCalibration:
@@ -461,7 +480,7 @@ class SimBackend:
         pose = _check_spawn(spawn)
         self._rng = rng
         d = self._draw_world(rng)  # the robot as built: the description unless randomised
-        positions, quats = settled_pose(d, self.time_step, self.settle_time)
+        positions, quats = settled_pose(d, self.time_step, self.settle_time, self.engine)
         world = self.world
         # Flat ground draws nothing from the rng: episodes stay as they were without it.
         terrain = self.terrain = self._build_terrain(d, rng)
@@ -770,7 +789,7 @@ class SimBackend:
         """Nothing to hold: the simulated motors follow the last targets."""
 
     def close(self) -> None:
-        """Drop the PyBullet world; later resets and steps raise (closing again is harmless)."""
+        """Drop the engine's world; later resets and steps raise (closing again is harmless)."""
         self._closed = True
         if self._world is not None:
             self._world.close()

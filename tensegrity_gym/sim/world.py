@@ -24,8 +24,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tensegrity_gym.model.kinematics import member_lengths, rod_quaternion_from_axis
-from tensegrity_gym.model.lie import quat_rotate
+from tensegrity_gym.model.kinematics import (
+    member_lengths,
+    rod_node_states,
+    rod_quaternion_from_axis,
+)
 from tensegrity_gym.model.samples import ns_to_seconds
 from tensegrity_gym.sim.cables import cable_wrenches, slew_motors
 
@@ -182,7 +185,6 @@ class PhysicsWorld:
     def _configure(self, d: RobotDescription) -> None:
         """What the hot loop reads of the robot: rods, cables, motors."""
         self._half = [0.5 * r.length for r in d.rods]
-        self._z_half = np.array([[0.0, 0.0, h] for h in self._half])
         self._node_of = [(int(r.nodes[0]), int(r.nodes[1])) for r in d.rods]
         self._half_arr = np.array(self._half)
         self._actuated = [int(k) for k in d.actuated]
@@ -375,24 +377,7 @@ class PhysicsWorld:
     def node_states(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Node positions and velocities, each (n, 3)."""
         pos, orn, lin, ang = self.rod_states()
-        p = np.asarray(pos)
-        w = np.asarray(ang)
-        v = np.asarray(lin)
-        arm = quat_rotate(np.asarray(orn), self._z_half)  # centre to second node
-        spin = np.stack(
-            [
-                w[:, 1] * arm[:, 2] - w[:, 2] * arm[:, 1],
-                w[:, 2] * arm[:, 0] - w[:, 0] * arm[:, 2],
-                w[:, 0] * arm[:, 1] - w[:, 1] * arm[:, 0],
-            ],
-            axis=1,
-        )
-        rn = self.description.rod_nodes
-        x = np.empty((self.description.n_nodes, 3))
-        xd = np.empty_like(x)
-        x[rn[:, 0]], x[rn[:, 1]] = p - arm, p + arm
-        xd[rn[:, 0]], xd[rn[:, 1]] = v - spin, v + spin
-        return x, xd
+        return rod_node_states(pos, orn, lin, ang, self._half_arr, self.description.rod_nodes)
 
     # ------------------------------------------------------------------ stepping
 

@@ -1,0 +1,101 @@
+"""The physics engines side by side: MuJoCo's env against its bare ``mj_step`` and
+against PyBullet's env, with the oracle and with the UKF in the loop.
+
+Every figure comes from one run of one process, the envs stepped in turn (alternated
+repeats, the least process time of each: other processes only ever add to it), so the
+ratios compare like with like on a shared, noisy machine.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import TYPE_CHECKING, Any
+
+import gymnasium as gym
+import numpy as np
+
+import tensegrity_gym  # noqa: F401  (registers the envs)
+
+if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
+__all__ = ["ENGINE_TARGETS", "bench_engines"]
+
+ENGINE_TARGETS = {
+    "mujoco_oracle_over_bare_mj_step": 0.9,
+    "mujoco_over_pybullet_oracle": 2.0,
+    "mujoco_over_pybullet_ukf": 1.5,
+}
+"""Issue 41's figures: each ratio at least this."""
+
+_ENGINES = ("pybullet", "mujoco")
+_ESTIMATORS = ("oracle", "ukf")
+
+
+def _ms_per_step(env: Any, actions: NDArray[np.float32], seed: int) -> float:
+    """Process-time ms per env step over ``actions`` from ``reset(seed)`` (the first 10
+    steps not timed), resetting where an episode ends."""
+    env.reset(seed=seed)
+    for a in actions[:10]:
+        env.step(a)
+    t = time.process_time()
+    for a in actions[10:]:
+        _, _, terminated, truncated, _ = env.step(a)
+        if terminated or truncated:
+            env.reset()
+    return 1e3 * (time.process_time() - t) / max(len(actions) - 10, 1)
+
+
+def _bare_ms_per_period(env: Any, periods: int) -> float:
+    """Process-time ms per control period of the engine's bare step of the same model
+    (MuJoCo: ``mj_step`` with the cables, which are part of its model; PyBullet: the
+    bodies without them)."""
+    backend = env.unwrapped.backend
+    steps = periods * round(backend.control_period / backend.time_step)
+    t = time.process_time()
+    backend.world.step_bare(steps)
+    return 1e3 * (time.process_time() - t) / periods
+
+
+def bench_engines(
+    env_id: str = "tensegrity_gym/ThreeBarRoll-v0", steps: int = 300, repeats: int = 5,
+    seed: int = 0,
+) -> dict[str, Any]:  # fmt: skip
+    """ms per env step on each engine with the oracle and the UKF, ms per period of the
+    bare engine step, and the ratios of :data:`ENGINE_TARGETS` (speed-ups: > 1 is
+    faster)."""
+    envs = {(e, est): gym.make(env_id, engine=e, estimator=est)
+            for e in _ENGINES for est in _ESTIMATORS}  # fmt: skip
+    shape = envs[_ENGINES[0], "oracle"].action_space.shape or ()
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, *shape)).astype(np.float32)
+    times: dict[str, list[float]] = {}
+    try:
+        for _ in range(repeats):
+            for (engine, estimator), env in envs.items():
+                key = f"{engine}_{estimator}_ms_per_step"
+                times.setdefault(key, []).append(_ms_per_step(env, actions, seed))
+            for engine in _ENGINES:
+                env = envs[engine, "oracle"]
+                env.reset(seed=seed)
+                key = f"{engine}_bare_ms_per_period"
+                times.setdefault(key, []).append(_bare_ms_per_period(env, max(steps // 3, 20)))
+    finally:
+        for env in envs.values():
+            env.close()
+    least = {key: min(t) for key, t in times.items()}
+    ratios = {
+        "mujoco_oracle_over_bare_mj_step": least["mujoco_bare_ms_per_period"]
+        / least["mujoco_oracle_ms_per_step"],
+        "mujoco_over_pybullet_oracle": least["pybullet_oracle_ms_per_step"]
+        / least["mujoco_oracle_ms_per_step"],
+        "mujoco_over_pybullet_ukf": least["pybullet_ukf_ms_per_step"]
+        / least["mujoco_ukf_ms_per_step"],
+    }
+    return {
+        "env": env_id,
+        "steps": steps,
+        "repeats": repeats,
+        **{key: round(value, 3) for key, value in least.items()},
+        **{key: round(value, 3) for key, value in ratios.items()},
+        "targets": ENGINE_TARGETS,
+    }
