@@ -25,6 +25,7 @@ HARDWARE_NAMESPACE = "tensegrity_gym_hardware"
 """The namespace of the envs that drive a robot over the link (or the emulator)."""
 
 _ENTRY = "tensegrity_gym.envs.factory:make_env"
+_VECTOR_ENTRY = "tensegrity_gym.envs.vector:make_vector_env"
 # Outermost: whatever fails in the stack gym.make builds, the motors stop.
 _SAFETY = (WrapperSpec("StopOnError", "tensegrity_gym.envs.safety:StopOnError", {}),)
 # The robot (or the emulator, ``tensegrity-gym emulate``) on the network; pass
@@ -100,11 +101,19 @@ def env_ids(*, hardware: bool | None = False) -> list[str]:
 
 
 for _id, _kwargs in preset_ids().items():
+    _robot = "driver" in _kwargs
     register(
         id=_id,
         entry_point=_ENTRY,
         max_episode_steps=TASK_IDS[_kwargs["task"]][1],
-        additional_wrappers=_SAFETY,
-        nondeterministic="driver" in _kwargs,
+        # A robot's motors stop whatever fails in the wrapper stack. A simulated id has no
+        # motors to stop, and a native vector env instead (Gymnasium's vector entry point
+        # takes no additional wrappers); its passive checker is off, since after a reset
+        # that failed it raises TypeError at the next step (Gymnasium 1.x) where the env
+        # says to reset again, and check_env passes on every id (tests/envs).
+        additional_wrappers=_SAFETY if _robot else (),
+        vector_entry_point=None if _robot else _VECTOR_ENTRY,
+        disable_env_checker=not _robot,
+        nondeterministic=_robot,
         kwargs=_kwargs,
     )

@@ -19,12 +19,13 @@ import tensegrity_gym  # noqa: F401  (registers the envs)
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
-__all__ = ["ENGINE_TARGETS", "bench_engines"]
+__all__ = ["ENGINE_TARGETS", "bench_engines", "bench_vector"]
 
 ENGINE_TARGETS = {
     "mujoco_oracle_over_bare_mj_step": 0.9,
     "mujoco_over_pybullet_oracle": 2.0,
     "mujoco_over_pybullet_ukf": 1.5,
+    "vector_over_single_per_core (N = 16, ukf)": 3.0,
 }
 """Issue 41's figures: each ratio at least this."""
 
@@ -98,4 +99,38 @@ def bench_engines(
         **{key: round(value, 3) for key, value in least.items()},
         **{key: round(value, 3) for key, value in ratios.items()},
         "targets": ENGINE_TARGETS,
+    }
+
+
+def bench_vector(
+    env_id: str = "tensegrity_gym/ThreeBarRoll-v0", num_envs: int = 16, steps: int = 60,
+    engine: str = "mujoco", estimator: str = "ukf", seed: int = 0,
+) -> dict[str, Any]:  # fmt: skip
+    """Process-time ms per env step of the native vector env of ``num_envs`` robots
+    against a single env's, on ``engine`` with ``estimator``; one process, so process
+    time is time on one core. ``ratio`` > 1: the vector env steps a robot faster."""
+    single = gym.make(env_id, engine=engine, estimator=estimator)
+    shape = single.action_space.shape or ()
+    actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, *shape)).astype(np.float32)
+    single_ms = _ms_per_step(single, actions, seed)
+    single.close()
+    vec = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
+                       engine=engine, estimator=estimator)  # fmt: skip
+    batched = np.repeat(actions[:, None], num_envs, axis=1)
+    vec.reset(seed=seed)
+    for a in batched[:5]:
+        vec.step(a)
+    t = time.process_time()
+    for a in batched[5:]:
+        vec.step(a)
+    vector_ms = 1e3 * (time.process_time() - t) / ((len(batched) - 5) * num_envs)
+    vec.close()
+    return {
+        "env": env_id,
+        "engine": engine,
+        "estimator": estimator,
+        "num_envs": num_envs,
+        "single_ms_per_env_step": round(single_ms, 3),
+        "vector_ms_per_env_step": round(vector_ms, 3),
+        "vector_over_single_per_core": round(single_ms / vector_ms, 3),
     }

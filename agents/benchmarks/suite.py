@@ -117,9 +117,10 @@ def run_benchmarks(
         results = _run(speed_steps, memory_steps, estimation, bag_minutes, link_steps,
                        soak_minutes, sim2real, jobs, engine)  # fmt: skip
         if engines:
-            from agents.benchmarks.engines import bench_engines
+            from agents.benchmarks.engines import bench_engines, bench_vector
 
             results["engines"] = bench_engines(steps=max(speed_steps // 5, 100))
+            results["engines"]["vector"] = bench_vector(steps=max(speed_steps // 25, 30))
         if not jobs.local:
             from agents.benchmarks.ray_cluster import bench_ray
 

@@ -63,6 +63,11 @@ MujocoCheckpoint = tuple[Any, list[float], list[float], int]
 targets, the clock (ns)."""
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+_BLOWN_UP = (
+    mujoco.mjtWarning.mjWARN_BADQACC,
+    mujoco.mjtWarning.mjWARN_BADQVEL,
+    mujoco.mjtWarning.mjWARN_BADQPOS,
+)
 
 
 def can_render() -> str | None:
@@ -107,6 +112,7 @@ class MujocoWorld:
         self.time_ns = 0
         """Simulated time in whole nanoseconds: stamps stay exact through a ROS bag."""
         self._key: tuple[object, ...] | None = None
+        self._built_terrain: Terrain | None = None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._release = weakref.finalize(self, _close_renderers, self._renderers)
         self.set_rest_lengths(description.rest_lengths)
@@ -128,8 +134,8 @@ class MujocoWorld:
         """A fresh episode: the model compiled anew where the robot, gravity or ground
         changed, the data reset (bit for bit the same start for the same inputs)."""
         d = self.description
-        key = (d, self.gravity.tobytes(), id(self.terrain), self.time_step)
-        if key != self._key:
+        key = (d, self.gravity.tobytes(), self.time_step)
+        if key != self._key or self.terrain is not self._built_terrain:
             text = robot_mjcf(d, time_step=self.time_step, gravity=self.gravity,
                               terrain=self.terrain)  # fmt: skip
             self.model = mujoco.MjModel.from_xml_string(text)
@@ -138,7 +144,7 @@ class MujocoWorld:
             self.data = mujoco.MjData(self.model)
             self._configure(d)
             _close_renderers(self._renderers)
-            self._key = key
+            self._key, self._built_terrain = key, self.terrain
         else:
             mujoco.mj_resetData(self.model, self.data)
         self._apply_rest_lengths()
@@ -290,7 +296,8 @@ class MujocoWorld:
                                 self.time_step, rate, arrive)  # fmt: skip
             stop = min(step + hold, next(e for e in ends if e > step))
             self.data.ctrl[self._actuated] = rate
-            mujoco.mj_step(self.model, self.data, nstep=stop - step)
+            if not self._unstable():  # a blown-up state stays NaN to the period's end
+                mujoco.mj_step(self.model, self.data, nstep=stop - step)
             self.time_ns += (stop - step) * self._time_step_ns
             if stop - step == hold:  # motors that took their last step sit on the target
                 self.data.act[arrive] = tgt[arrive]
@@ -300,6 +307,16 @@ class MujocoWorld:
         self.data.ctrl[self._actuated] = 0.0
         self.rest_lengths = self._rest_now()
         return snapshots
+
+    def _unstable(self) -> bool:
+        """Whether MuJoCo found the state blown up: it then resets the data to the model's
+        start and goes on, so the state is marked NaN here instead, for the backend's
+        divergence check to see (the episode ends as on PyBullet)."""
+        if not any(self.data.warning[w].number for w in _BLOWN_UP):
+            return False
+        self.data.qpos[:] = np.nan  # idempotent: the warnings stay until the next reset
+        self.data.qvel[:] = np.nan
+        return True
 
     def _rest_now(self) -> list[float]:
         rest = np.array(self.rest_lengths)

@@ -32,6 +32,7 @@ if TYPE_CHECKING:
     from numpy.typing import NDArray
 
 ENV_ID = "tensegrity_gym/ThreeBarRoll-v0"
+HARDWARE_ID = "tensegrity_gym_hardware/ThreeBarRoll-v0"
 THREE_BAR = load_robot("three_bar")
 
 
@@ -322,8 +323,9 @@ def test_a_failed_later_reset_does_not_step_the_previous_episode() -> None:
 def test_an_error_outside_the_env_in_the_stack_stops_the_motors(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    """The robot's id (a simulated one has no motors, and no StopOnError: docs/envs.md)."""
     backend = _FlakyBackend(failures=0)
-    env = gym.make(ENV_ID, driver=backend, estimator="oracle")
+    env = gym.make(HARDWARE_ID, driver=backend, estimator="oracle")
     env.reset(seed=0)
 
     def broken_step(self: Any, action: Any) -> Any:

@@ -57,7 +57,9 @@ def test_every_preset_gets_every_id_and_nothing_else() -> None:
         spec = gym.spec(env_id)
         assert spec.kwargs == kwargs
         assert spec.nondeterministic == ("driver" in kwargs)
-        assert [w.name for w in spec.additional_wrappers] == ["StopOnError"]
+        robot = "driver" in kwargs
+        assert [w.name for w in spec.additional_wrappers] == (["StopOnError"] if robot else [])
+        assert (spec.vector_entry_point is None) == robot
         steps = tensegrity_gym.TASK_IDS[kwargs["task"]][1]
         assert spec.max_episode_steps == steps
 

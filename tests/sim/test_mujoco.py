@@ -175,3 +175,21 @@ def test_the_backend_pickles_its_engine() -> None:
     backend = SimBackend(THREE_BAR, engine="mujoco")
     clone = pickle.loads(pickle.dumps(backend))
     assert clone.engine == "mujoco" and type(clone.world).__name__ == "MujocoWorld"
+
+
+def test_a_blown_up_mujoco_state_ends_the_episode_as_on_pybullet() -> None:
+    """MuJoCo resets a blown-up state to the model's start and goes on; the world marks it
+    NaN instead, so the env truncates with ``sim_diverged`` as it does on PyBullet."""
+    import gymnasium as gym
+
+    env = gym.make("tensegrity_gym/ThreeBarRoll-v0", engine="mujoco", estimator="oracle")
+    inner = env.unwrapped
+    obs, _ = inner.reset(seed=0)
+    world = inner.backend.world
+    world.data.qvel[:] = 1e12  # beyond any integration: MuJoCo warns of a bad velocity
+    obs, reward, terminated, truncated, info = inner.step(np.zeros(6, dtype=np.float32))
+    assert truncated and not terminated and info["sim_diverged"] is True
+    assert np.all(np.isfinite(obs)) and reward == 0.0
+    inner.reset(seed=0)  # and a reset recovers
+    assert inner.step(np.zeros(6, dtype=np.float32))[4]["sim_diverged"] is False
+    env.close()
