@@ -118,8 +118,8 @@ class EngineSpec:
         try:
             return resolve(self.factory)
         except ImportError as err:
-            hint = f": {self.install}" if self.install else ""
-            raise ImportError(f"engine {self.name!r} is not installed{hint} ({err})") from None
+            how = f": {self.install}" if self.install else f" ({err})"
+            raise ImportError(f"engine {self.name!r} is not installed{how}") from None
 
     def render_problem(self) -> str | None:
         """None where this engine can render the camera here, else why not."""

@@ -104,11 +104,14 @@ def test_a_robot_that_hardly_moves_is_one_line(stiffer: RecordedRun) -> None:
         identify_run(stiffer, ["damping"], model="mujoco")
 
 
-def test_identify_writes_a_robot_the_env_loads(tmp_path: Path) -> None:
-    """The command on a recorded bag: a robot YAML gym.make, the simulator and the UKF
+@pytest.mark.parametrize("engine", ["pybullet", "mujoco"])
+def test_identify_writes_a_robot_the_env_loads(tmp_path: Path, engine: str) -> None:
+    """The command on a recorded bag (from either engine: identification simulates in
+    PyBullet whatever recorded it): a robot YAML gym.make, the simulator and the UKF
     load, and a report with the parameters and the errors before and after."""
     bag_dir = tmp_path / "bags"
-    env = make_env(NOMINAL, estimator="oracle", calibration="true", record_dir=bag_dir)
+    env = make_env(NOMINAL, estimator="oracle", calibration="true", record_dir=bag_dir,
+                   engine=engine)  # fmt: skip
     obs, _ = env.reset(seed=1)
     gait = FaceGait(NOMINAL, env.task)
     for _ in range(50):

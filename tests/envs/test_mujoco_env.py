@@ -168,3 +168,18 @@ def test_a_bag_recorded_on_mujoco_replays_and_estimates(tmp_path: Path) -> None:
     metrics = estimate_bag(bag, "ukf", tmp_path / "est", progress=False, settle=0.5)
     assert metrics[0]["finite"] and metrics[0]["steps_scored"] > 5
     assert metrics[0]["com_rmse_m"] < 0.05  # the UKF places the MuJoCo robot
+
+
+def test_without_mujoco_installed_make_says_what_to_install(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import sys
+
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # import mujoco raises ImportError
+    monkeypatch.delitem(sys.modules, "tensegrity_gym.sim.mujoco_world", raising=False)
+    with pytest.raises(ImportError) as err:
+        gym.make(ROLL, engine="mujoco")
+    assert str(err.value) == (
+        "make: engine 'mujoco' is not installed: pip install 'tensegrity-gym[mujoco]'"
+    )
+    gym.make(ROLL).close()  # PyBullet, the default, needs nothing more
