@@ -63,10 +63,12 @@ MujocoCheckpoint = tuple[Any, list[float], list[float], int]
 targets, the clock (ns)."""
 
 _STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
-_BLOWN_UP = (
-    mujoco.mjtWarning.mjWARN_BADQACC,
-    mujoco.mjtWarning.mjWARN_BADQVEL,
-    mujoco.mjtWarning.mjWARN_BADQPOS,
+_BLOWN_UP = np.array(
+    [
+        int(mujoco.mjtWarning.mjWARN_BADQACC),
+        int(mujoco.mjtWarning.mjWARN_BADQVEL),
+        int(mujoco.mjtWarning.mjWARN_BADQPOS),
+    ]
 )
 
 
@@ -160,6 +162,7 @@ class MujocoWorld:
         self._max_step = speed * self.time_step  # m per physics step
         self._least = d.motor_min_stretch  # NaN: the cable may go slack
         self._held = ~np.isnan(self._least)
+        self._any_held = bool(self._held.any())
         self._rate = np.zeros(d.n_actuated)  # the motors' rest-length rates (m/s)
         self._arrive = np.zeros(d.n_actuated, dtype=np.bool_)
         self._rod_nodes = np.asarray(d.rod_nodes, dtype=np.int64)
@@ -244,9 +247,11 @@ class MujocoWorld:
         return self._spool(self._rod_arrays()[4])
 
     def _spool(self, nodes: NDArray[np.float64]) -> list[float]:
-        """:attr:`spool_lengths` with the nodes (n, 3) at hand."""
+        """:attr:`spool_lengths` now (the motors' rest lengths mid-period included), with
+        the nodes (n, 3) at hand."""
         rest = np.array(self.rest_lengths)
-        if self._held.any():
+        rest[self._actuated] = self.data.act
+        if self._any_held:
             k = self._actuated[self._held]
             lengths = member_lengths(nodes, self.description.cable_nodes[k])
             rest[k] = np.minimum(rest[k], lengths - self._least[self._held])
@@ -291,30 +296,35 @@ class MujocoWorld:
         snapshots: list[Snapshot] = []
         step = 0
         rate, arrive = self._rate, self._arrive
+        end = iter(ends)
+        due = next(end)
         while step < n_steps:
             hold = _motor_rates(self.data.act, tgt, self._max_step, self._speed,
                                 self.time_step, rate, arrive)  # fmt: skip
-            stop = min(step + hold, next(e for e in ends if e > step))
+            stop = min(step + hold, due)
             self.data.ctrl[self._actuated] = rate
-            if not self._unstable():  # a blown-up state stays NaN to the period's end
-                mujoco.mj_step(self.model, self.data, nstep=stop - step)
+            mujoco.mj_step(self.model, self.data, nstep=stop - step)
             self.time_ns += (stop - step) * self._time_step_ns
             if stop - step == hold:  # motors that took their last step sit on the target
                 self.data.act[arrive] = tgt[arrive]
             step = stop
+            if step == due:
+                due = next(end, n_steps)
             if snapshot_steps[step - 1]:
                 snapshots.append(self.snapshot())
         self.data.ctrl[self._actuated] = 0.0
         self.rest_lengths = self._rest_now()
+        if self._unstable() and snapshots and snapshot_steps[n_steps - 1]:
+            snapshots[-1] = self.snapshot()  # the period's end, as the backend checks it
         return snapshots
 
     def _unstable(self) -> bool:
-        """Whether MuJoCo found the state blown up: it then resets the data to the model's
-        start and goes on, so the state is marked NaN here instead, for the backend's
-        divergence check to see (the episode ends as on PyBullet)."""
-        if not any(self.data.warning[w].number for w in _BLOWN_UP):
+        """Whether MuJoCo found the state blown up during the period: it then resets the
+        data to the model's start and goes on, so the state is marked NaN here instead,
+        for the backend's divergence check to see (the episode ends as on PyBullet)."""
+        if not self.data.warning.number[_BLOWN_UP].any():
             return False
-        self.data.qpos[:] = np.nan  # idempotent: the warnings stay until the next reset
+        self.data.qpos[:] = np.nan  # the warnings stay until the next reset
         self.data.qvel[:] = np.nan
         return True
 
@@ -346,16 +356,10 @@ class MujocoWorld:
         return ns_to_seconds(self.time_ns)
 
     def snapshot(self) -> Snapshot:
-        pos, orn, lin, ang, nodes = self._rod_arrays()
-        return Snapshot(
-            self.time,
-            list(map(tuple, pos.tolist())),
-            list(map(tuple, orn.tolist())),
-            list(map(tuple, lin.tolist())),
-            list(map(tuple, ang.tolist())),
-            nodes.tolist(),
-            self._spool(nodes),
-        )
+        out = self._rod_buffers
+        _read_rods(self.data.qpos, self.data.qvel, self._half, self._rod_nodes, *out)
+        pos, orn, lin, ang, nodes = (a.tolist() for a in out)
+        return Snapshot(self.time, pos, orn, lin, ang, nodes, self._spool(out[4]))
 
     # ------------------------------------------------------------------ rendering
 

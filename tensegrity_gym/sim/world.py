@@ -113,12 +113,18 @@ class Snapshot:
     """The true state at one physics step, for the sensor models."""
 
     t: float
-    rod_positions: list[tuple[float, float, float]]
-    rod_quaternions: list[tuple[float, float, float, float]]
-    rod_linear_velocities: list[tuple[float, float, float]]
-    rod_angular_velocities: list[tuple[float, float, float]]
+    rod_positions: Sequence[Sequence[float]]
+    """(r, 3) m."""
+    rod_quaternions: Sequence[Sequence[float]]
+    """(r, 4) (x, y, z, w)."""
+    rod_linear_velocities: Sequence[Sequence[float]]
+    """(r, 3) m/s, world frame."""
+    rod_angular_velocities: Sequence[Sequence[float]]
+    """(r, 3) rad/s, world frame."""
     node_positions: list[list[float]]
+    """(n, 3) m."""
     rest_lengths: list[float]
+    """(n_cables,) m, in effect (what the encoders read)."""
 
 
 class PhysicsWorld:

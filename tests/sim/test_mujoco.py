@@ -193,3 +193,23 @@ def test_a_blown_up_mujoco_state_ends_the_episode_as_on_pybullet() -> None:
     inner.reset(seed=0)  # and a reset recovers
     assert inner.step(np.zeros(6, dtype=np.float32))[4]["sim_diverged"] is False
     env.close()
+
+
+def test_the_encoders_read_the_same_slew_on_both_engines() -> None:
+    """The encoders sample the motors' rest lengths within a period (100 Hz): the same
+    readings on both engines, as the slew is the motors' own, not the physics'."""
+    from tensegrity_gym.model.samples import EncoderSample
+
+    d = THREE_BAR
+    lo, hi, _ = d.motor_limits
+    targets = np.where(np.arange(d.n_actuated) % 2 == 0, lo, hi)
+    readings = []
+    for engine in ("pybullet", "mujoco"):
+        backend = SimBackend(d, engine=engine)
+        backend.reset(np.random.default_rng(0))
+        samples = [s for _ in range(2) for s in backend.step(targets).samples]
+        readings.append(np.array([s.rest_lengths for s in samples if isinstance(s, EncoderSample)]))
+        backend.close()
+    assert len(readings[0]) == 20
+    assert np.ptp(readings[0][:10, 0]) > 0.01  # the motors move within a period
+    np.testing.assert_array_equal(readings[0], readings[1])
