@@ -48,7 +48,10 @@ class Sb3VecEnv(VecEnv):
 
     def reset(self) -> VecEnvObs:
         seeds: Any = list(self._seeds)  # one per env (Gymnasium's vector envs take a list)
-        obs, infos = self.vector_env.reset(seed=seeds)
+        options = self._options[0] if self._options and self._options[0] else None
+        if any(o != self._options[0] for o in self._options):
+            raise ValueError("Sb3VecEnv: the vector env takes one set of reset options")
+        obs, infos = self.vector_env.reset(seed=seeds, options=options)
         self.reset_infos = _per_env(infos, self.num_envs)
         self._reset_seeds()
         self._reset_options()
@@ -61,11 +64,15 @@ class Sb3VecEnv(VecEnv):
         obs, rewards, terminated, truncated, infos = self.vector_env.step(self._actions)
         dones = terminated | truncated
         per_env = _per_env(infos, self.num_envs)
-        final = infos.get("final_obs")
+        # As DummyVecEnv: an ended env's info is its last step's, the last observation in
+        # it; the new episode's first info goes to reset_infos.
+        final_info = _per_env(infos.get("final_info", {}), self.num_envs)
+        for ended in np.flatnonzero(dones).tolist():
+            self.reset_infos[ended] = per_env[ended]
+            per_env[ended] = final_info[ended]
+            per_env[ended]["terminal_observation"] = infos["final_obs"][ended]
         for i, info in enumerate(per_env):
             info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
-            if dones[i] and final is not None:
-                info["terminal_observation"] = final[i]
         return obs, rewards.astype(np.float32), dones, per_env
 
     def close(self) -> None:

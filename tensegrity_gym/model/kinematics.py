@@ -9,6 +9,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from tensegrity_gym.model.lie import quat_rotate
+
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
 
@@ -86,16 +88,19 @@ def rod_node_states(
     (r, 3), quaternions (r, 4) (x, y, z, w), linear and angular velocities (r, 3) in the
     world frame, half lengths (r,) (m); a rod's first node lies at its centre minus half
     its length along its body z, its second at plus."""
-    q = np.asarray(quaternions, dtype=np.float64)
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    h = np.asarray(half_lengths, dtype=np.float64)
-    # The body z axis times the half length: centre to second node (r, 3).
-    arm = np.stack(
-        [2.0 * (x * z + w * y) * h, 2.0 * (y * z - w * x) * h, (1.0 - 2.0 * (x * x + y * y)) * h],
+    p, v = np.asarray(positions, dtype=np.float64), np.asarray(linear, dtype=np.float64)
+    w = np.asarray(angular, dtype=np.float64)
+    z_half = np.zeros_like(p)
+    z_half[:, 2] = half_lengths
+    arm = quat_rotate(quaternions, z_half)  # centre to second node (r, 3)
+    spin = np.stack(  # w x arm, written out as the PyBullet world always had it
+        [
+            w[:, 1] * arm[:, 2] - w[:, 2] * arm[:, 1],
+            w[:, 2] * arm[:, 0] - w[:, 0] * arm[:, 2],
+            w[:, 0] * arm[:, 1] - w[:, 1] * arm[:, 0],
+        ],
         axis=1,
     )
-    spin = np.cross(np.asarray(angular, dtype=np.float64), arm)
-    p, v = np.asarray(positions, dtype=np.float64), np.asarray(linear, dtype=np.float64)
     n = 2 * len(rod_nodes)
     nodes, velocities = np.empty((n, 3)), np.empty((n, 3))
     nodes[rod_nodes[:, 0]], nodes[rod_nodes[:, 1]] = p - arm, p + arm

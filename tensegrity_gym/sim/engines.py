@@ -118,8 +118,12 @@ class EngineSpec:
         try:
             return resolve(self.factory)
         except ImportError as err:
-            how = f": {self.install}" if self.install else f" ({err})"
-            raise ImportError(f"engine {self.name!r} is not installed{how}") from None
+            missing = isinstance(err, ModuleNotFoundError) or "pip install" in str(err)
+            if missing and self.install:
+                raise ImportError(
+                    f"engine {self.name!r} is not installed: {self.install}"
+                ) from None
+            raise ImportError(f"engine {self.name!r} did not import: {err}") from None
 
     def render_problem(self) -> str | None:
         """None where this engine can render the camera here, else why not."""

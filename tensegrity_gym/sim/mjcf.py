@@ -18,9 +18,10 @@ MuJoCo; :mod:`tensegrity_gym.sim.mujoco_world` compiles it.
   physics step so that it slews toward the command at the motor's speed limit (the
   world sets it). ``actearly`` has the force use the slewed rest length of the same step,
   as the PyBullet world's motors move before its cables pull.
-- Contacts: every geom has the ground's sliding, torsional (spinning) and rolling friction
-  (``condim`` 6); the description's restitution e sets the contact's damping ratio
-  ``-ln e / sqrt(pi^2 + ln^2 e)`` (a critically damped contact for e = 0).
+- Contacts: every geom has the sliding, torsional (spinning) and rolling friction the
+  PyBullet world's contacts have (:func:`contact_coefficients`; ``condim`` 6); that
+  contact's restitution e sets its damping ratio ``-ln e / sqrt(pi^2 + ln^2 e)`` (a
+  critically damped contact for e = 0).
 - The ground is the plane z = 0, or a height field holding the terrain's heights: its
   ``nrow`` x ``ncol`` grid and size are in the text, the normalised heights are written
   into the compiled model (:func:`hfield_data`), as inline they would make a large map's
@@ -40,10 +41,10 @@ from tensegrity_gym.model.kinematics import rod_quaternion_from_axis
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
-    from tensegrity_gym.model.description import RobotDescription, Rod
+    from tensegrity_gym.model.description import Ground, RobotDescription, Rod
     from tensegrity_gym.sim.terrain import Terrain
 
-__all__ = ["HFIELD", "INTEGRATOR", "hfield_data", "robot_mjcf", "site_name"]
+__all__ = ["HFIELD", "INTEGRATOR", "contact_coefficients", "hfield_data", "robot_mjcf", "site_name"]
 
 HFIELD = "terrain"
 """The name of the height field asset (and its geom) where the ground is a terrain."""
@@ -55,6 +56,7 @@ _MIN_CONTACT_TIME = 0.005  # s: stiff enough that a resting robot sinks under a 
 _FLOOR_RGBA = "0.55 0.55 0.5 1"  # as the PyBullet world's floor
 _ROD_RGBA = "0.3 0.3 0.3 1"
 _MAX_FORCE = 1.0e9  # N: "no limit" on a cable's tension
+_MIN_RELIEF = 1.0e-3  # m: the height field's elevation range where the map has none
 
 
 def site_name(node: int) -> str:
@@ -78,14 +80,30 @@ def _damping_ratio(restitution: float) -> float:
     return -log_e / math.sqrt(math.pi * math.pi + log_e * log_e)
 
 
+def contact_coefficients(ground: Ground) -> tuple[float, float, float, float]:
+    """The sliding, spinning and rolling friction and the restitution of a contact as
+    the PyBullet world makes them: it gives ground and rods alike the description's
+    coefficients, and Bullet combines a pair's as ``mu_a mu_b`` (sliding),
+    ``s_a mu_b + mu_a s_b`` (spinning, rolling) and ``e_a e_b`` (restitution). MuJoCo
+    would take the larger of two geoms' instead, so each geom here gets the combined
+    values: the two engines' contacts then pull and bounce alike."""
+    mu = ground.lateral_friction
+    return (
+        mu * mu,
+        2.0 * mu * ground.spinning_friction,
+        2.0 * mu * ground.rolling_friction,
+        ground.restitution * ground.restitution,
+    )
+
+
 def _contact(description: RobotDescription, time_step: float) -> dict[str, str]:
     """The attributes every geom shares: friction, contact dimension, softness."""
-    g = description.ground
+    sliding, spinning, rolling, restitution = contact_coefficients(description.ground)
     time_constant = max(_CONTACT_TIME_STEPS * time_step, _MIN_CONTACT_TIME)
     return {
-        "friction": _vector([g.lateral_friction, g.spinning_friction, g.rolling_friction]),
+        "friction": _vector([sliding, spinning, rolling]),
         "condim": "6",
-        "solref": _vector([time_constant, _damping_ratio(g.restitution)]),
+        "solref": _vector([time_constant, _damping_ratio(restitution)]),
     }
 
 
@@ -158,9 +176,10 @@ def _ground(
     rows, cols = terrain.heights.shape
     x0, x1, y0, y1 = terrain.extent
     low, high = float(terrain.heights.min()), float(terrain.heights.max())
+    relief = max(high - low, _MIN_RELIEF)  # a level map off z = 0 has none: MuJoCo wants some
     ET.SubElement(
         asset, "hfield", name=HFIELD, nrow=str(rows), ncol=str(cols),
-        size=_vector([0.5 * (x1 - x0), 0.5 * (y1 - y0), high - low, 0.1 * (high - low) + 0.01]),
+        size=_vector([0.5 * (x1 - x0), 0.5 * (y1 - y0), relief, 0.1 * relief + 0.01]),
     )  # fmt: skip
     ET.SubElement(
         world, "geom", contact, name=HFIELD, type="hfield", hfield=HFIELD, material="floor",
@@ -173,7 +192,7 @@ def hfield_data(terrain: Terrain) -> NDArray[np.float32]:
     along y and columns along x (as :class:`Terrain` has them), scaled to [0, 1] of the
     field's elevation (``rows * cols``,)."""
     h = np.asarray(terrain.heights, dtype=np.float64)
-    span = float(h.max() - h.min())
+    span = max(float(h.max() - h.min()), _MIN_RELIEF)
     scaled: NDArray[np.float32] = ((h - h.min()) / span).astype(np.float32).ravel()
     return scaled
 

@@ -59,10 +59,10 @@ if TYPE_CHECKING:
 __all__ = ["MujocoCheckpoint", "MujocoWorld", "can_render"]
 
 MujocoCheckpoint = tuple[Any, list[float], list[float], int]
-"""MuJoCo's full physics state, the passive and actuated rest lengths, the motors'
-targets, the clock (ns)."""
+"""MuJoCo's integration state (physics, controls: the passive cables' rest lengths, the
+motors' rates), the rest lengths, the motors' targets, the clock (ns)."""
 
-_STATE = mujoco.mjtState.mjSTATE_FULLPHYSICS
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION  # physics, controls and warm start
 _BLOWN_UP = np.array(
     [
         int(mujoco.mjtWarning.mjWARN_BADQACC),
@@ -77,10 +77,16 @@ def can_render() -> str | None:
     try:
         model = mujoco.MjModel.from_xml_string("<mujoco><worldbody/></mujoco>")
         renderer = mujoco.Renderer(model, 8, 8)
-    except Exception as err:
-        return f"{type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''}"
+    except Exception as err:  # any failure of the GL stack means no
+        return _first_line(err)
     renderer.close()
     return None
+
+
+def _first_line(err: BaseException) -> str:
+    """The error's type and the first line of its message."""
+    text = str(err).splitlines()[0] if str(err) else ""
+    return f"{type(err).__name__}: {text}"
 
 
 class MujocoWorld:
@@ -137,7 +143,7 @@ class MujocoWorld:
         changed, the data reset (bit for bit the same start for the same inputs)."""
         d = self.description
         key = (d, self.gravity.tobytes(), self.time_step)
-        if key != self._key or self.terrain is not self._built_terrain:
+        if key != self._key or not _same_ground(self.terrain, self._built_terrain):
             text = robot_mjcf(d, time_step=self.time_step, gravity=self.gravity,
                               terrain=self.terrain)  # fmt: skip
             self.model = mujoco.MjModel.from_xml_string(text)
@@ -347,6 +353,7 @@ class MujocoWorld:
     def restore_state(self, checkpoint: MujocoCheckpoint) -> None:
         state, rest, targets, t_ns = checkpoint
         mujoco.mj_setState(self.model, self.data, state, _STATE)
+        self.data.warning.number[_BLOWN_UP] = 0  # a restored state starts clean
         mujoco.mj_forward(self.model, self.data)
         self.rest_lengths, self.targets, self.time_ns = list(rest), list(targets), t_ns
 
@@ -396,7 +403,13 @@ class MujocoWorld:
         if renderer is None:
             self.model.vis.global_.offwidth = max(self.model.vis.global_.offwidth, width)
             self.model.vis.global_.offheight = max(self.model.vis.global_.offheight, height)
-            renderer = mujoco.Renderer(self.model, height, width)
+            try:
+                renderer = mujoco.Renderer(self.model, height, width)
+            except Exception as err:  # the GL stack fails in many ways
+                raise RuntimeError(
+                    f"engine 'mujoco' cannot render on this machine ({_first_line(err)}); "
+                    "set MUJOCO_GL=egl or osmesa where the machine has it"
+                ) from None
             self._renderers[(width, height)] = renderer
         return renderer
 
@@ -474,6 +487,21 @@ def _read_rods(
         for i in range(3):
             nodes[a, i] = positions[r, i] - arm[i]
             nodes[b, i] = positions[r, i] + arm[i]
+
+
+def _same_ground(a: Terrain | None, b: Terrain | None) -> bool:
+    """Whether two grounds are the same surface (a new flat map each reset is the plane
+    of the last one: the model need not be compiled again)."""
+    if a is None or a.is_flat:
+        return b is None or b.is_flat
+    if b is None or b.is_flat:
+        return False
+    return (
+        a.cell_size == b.cell_size
+        and a.origin == b.origin
+        and a.heights.shape == b.heights.shape
+        and bool(np.array_equal(a.heights, b.heights))
+    )
 
 
 def _close_renderers(renderers: dict[tuple[int, int], Any]) -> None:

@@ -183,3 +183,46 @@ def test_without_mujoco_installed_make_says_what_to_install(
         "make: engine 'mujoco' is not installed: pip install 'tensegrity-gym[mujoco]'"
     )
     gym.make(ROLL).close()  # PyBullet, the default, needs nothing more
+
+
+def test_a_reset_reuses_the_model_and_repeats_the_episode() -> None:
+    env = gym.make(ROLL, engine="mujoco", estimator="oracle")
+    runs = []
+    for _ in range(2):
+        obs, _ = env.reset(seed=11)
+        model = env.unwrapped.backend.world.model
+        runs.append([obs] + [env.step(np.full(6, -0.5, dtype=np.float32))[0] for _ in range(8)])
+        runs[-1].append(model)
+    assert runs[0][-1] is runs[1][-1]  # flat ground each reset: not compiled again
+    assert _equal(runs[0][:-1], runs[1][:-1])
+    env.close()
+
+
+def test_a_level_map_off_the_plane_is_ground_on_mujoco() -> None:
+    from tensegrity_gym.sim.terrain import Terrain
+
+    level = Terrain(np.full((30, 30), 0.3), 0.5, origin=(-7.0, -7.0), name="plateau")
+    env = gym.make(ROLL, engine="mujoco", estimator="oracle", terrain=level)
+    env.reset(seed=0)
+    for _ in range(5):
+        env.step(np.zeros(6, dtype=np.float32))
+    nodes = env.unwrapped.backend.ground_truth().node_positions
+    d = env.unwrapped.backend.description
+    assert abs(nodes[:, 2].min() - (0.3 + d.rods[0].endcap_radius)) < 0.005
+    env.close()
+
+
+def test_a_checkpoint_restored_after_a_blow_up_runs_on() -> None:
+    from tensegrity_gym.model.description import load_robot
+    from tensegrity_gym.sim.mujoco_world import MujocoWorld
+
+    d = load_robot("three_bar")
+    world = MujocoWorld(d, 0.001)
+    world.set_node_positions(d.initial_positions)
+    saved = world.save_state()
+    world.data.qvel[:] = 1e12
+    world.advance(10, world.targets, [False] * 9 + [True])
+    assert not np.isfinite(world.snapshot().rod_positions).all()
+    world.restore_state(saved)
+    snaps = world.advance(10, world.targets, [False] * 9 + [True])
+    assert np.isfinite(snaps[-1].rod_positions).all() and world.time_ns == saved[-1] + 10**7

@@ -123,10 +123,13 @@ def test_sb3_trains_on_the_vector_env_as_on_single_envs() -> None:
         for x, y in zip(ra[:3], rb[:3], strict=True):
             assert np.array_equal(x, y)
         for ia, ib in zip(ra[3], rb[3], strict=True):
-            assert ia["TimeLimit.truncated"] == ib["TimeLimit.truncated"]
-            assert np.array_equal(
-                ia.get("terminal_observation", 0), ib.get("terminal_observation", 0)
-            )
+            assert ia.keys() == ib.keys()  # the ended step's info, not the new episode's
+            for key in ia:
+                assert np.array_equal(ia[key], ib[key]), key
+        for ia, ib in zip(dummy.reset_infos, ours.reset_infos, strict=True):
+            assert ia.keys() == ib.keys()
+            for key in ia:
+                assert np.array_equal(ia[key], ib[key]), key
     dummy.close()
     model = PPO("MlpPolicy", ours, n_steps=16, batch_size=16, n_epochs=1, seed=0, device="cpu")
     model.learn(32)
