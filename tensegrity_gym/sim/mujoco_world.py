@@ -340,8 +340,8 @@ class MujocoWorld:
         return [float(x) for x in rest]
 
     def step_bare(self, n_steps: int) -> None:
-        """``mj_step`` alone at the present controls: the speed ceiling the benchmark
-        compares with (the cables pull: in MuJoCo they are part of the model)."""
+        """``mj_step`` alone at the present controls: the ceiling the benchmark compares
+        the env with (the cables pull: in MuJoCo they are part of the model)."""
         mujoco.mj_step(self.model, self.data, nstep=n_steps)
 
     def save_state(self) -> MujocoCheckpoint:

@@ -447,7 +447,9 @@ class PhysicsWorld:
         return snapshots
 
     def step_bare(self, n_steps: int) -> None:
-        """Step PyBullet alone, no cables: the speed ceiling the benchmark compares with."""
+        """Step PyBullet alone, no cables (the rods fall apart): the engine's own cost that
+        the benchmark puts beside the env's. Not a ceiling: rods piling up on the ground
+        can cost more than a standing robot."""
         for _ in range(n_steps):
             pybullet.stepSimulation(physicsClientId=self.client)
 
