@@ -141,8 +141,15 @@ def test_a_randomised_world_draws_the_same_factors_on_both_engines() -> None:
     for engine in ("pybullet", "mujoco"):
         env = gym.make(ROLL, engine=engine, randomization="mild", estimator="oracle")
         draws.append(env.reset(seed=5)[1]["randomization"])
+        backend = env.unwrapped.backend
+        robot, nominal, world = backend.world_draw.robot, backend.description, backend.world
         env.close()
     assert draws[0] == draws[1]
+    # And the MuJoCo model is the drawn robot, not the nominal one.
+    model = world.model
+    np.testing.assert_allclose(model.body_mass[1:], [r.mass for r in robot.rods])
+    np.testing.assert_allclose(model.actuator_gainprm[:, 0], [c.stiffness for c in robot.cables])
+    assert not np.allclose(model.body_mass[1:], [r.mass for r in nominal.rods])
 
 
 def test_a_bag_recorded_on_mujoco_replays_and_estimates(tmp_path: Path) -> None:

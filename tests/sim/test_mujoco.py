@@ -213,3 +213,41 @@ def test_the_encoders_read_the_same_slew_on_both_engines() -> None:
     assert len(readings[0]) == 20
     assert np.ptp(readings[0][:10, 0]) > 0.01  # the motors move within a period
     np.testing.assert_array_equal(readings[0], readings[1])
+
+
+def test_damping_and_the_minimum_tension_pull_as_the_reference() -> None:
+    """The 1.45 m robot (its motors hold a minimum tension) moving: the actuators'
+    generalised forces equal :func:`cable_wrenches`' with the damping rate taken exact
+    (the reference's backward difference fed the length a step before)."""
+    d = load_robot("three_bar_large")
+    world = MujocoWorld(d, 0.001)
+    rng = np.random.default_rng(7)
+    x = d.initial_positions + rng.normal(0.0, 0.01, d.initial_positions.shape)
+    rn = d.rod_nodes
+    axes = x[rn[:, 1]] - x[rn[:, 0]]
+    q = rod_quaternion_from_axis(axes / np.linalg.norm(axes, axis=1, keepdims=True))
+    p = 0.5 * (x[rn[:, 0]] + x[rn[:, 1]]) + np.array([0.0, 0.0, 1.0])
+    v, w = rng.normal(0.0, 0.02, (d.n_rods, 3)), rng.normal(0.0, 0.02, (d.n_rods, 3))
+    half = np.array([0.5 * r.length for r in d.rods])
+    nodes, velocities = rod_node_states(p, q, v, w, half, d.rod_nodes)
+    lengths = member_lengths(nodes, d.cable_nodes)
+    ends = d.cable_nodes
+    along = (nodes[ends[:, 1]] - nodes[ends[:, 0]]) / lengths[:, None]
+    rate = np.sum(along * (velocities[ends[:, 1]] - velocities[ends[:, 0]]), axis=1)
+    least = d.motor_min_stretch
+    rest = lengths - 0.01  # taut by 1 cm
+    rest[d.actuated[:3]] = lengths[d.actuated[:3]]  # slack but for the motor's minimum
+    world.set_rest_lengths(rest)
+    world.set_rod_states(p, q, v, w)
+    reel = np.full(d.n_cables, np.nan)
+    reel[d.actuated] = least
+    wrench = np.empty((d.n_rods, 6))
+    cable_wrenches(
+        np.c_[p, q], half, np.asarray(rn, dtype=np.int64), np.asarray(ends, dtype=np.int64),
+        np.array([c.stiffness for c in d.cables]), np.array([c.damping for c in d.cables]),
+        rest, reel, rest.copy(), lengths - 0.001 * rate, 1000.0, d.n_nodes, wrench,
+    )  # fmt: skip
+    forces = world.data.qfrc_actuator.reshape(d.n_rods, 6)
+    np.testing.assert_allclose(forces[:, :3], wrench[:, :3], rtol=1e-6, atol=1e-6)
+    body_torque = np.einsum("rji,rj->ri", quat_to_matrix(q), wrench[:, 3:])
+    np.testing.assert_allclose(forces[:, 3:], body_torque, rtol=1e-6, atol=1e-6)
