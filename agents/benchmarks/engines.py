@@ -9,15 +9,13 @@ ratios compare like with like on a shared, noisy machine.
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
-
-if TYPE_CHECKING:
-    from numpy.typing import NDArray
+from agents.benchmarks.env import ms_per_step
 
 __all__ = ["ENGINE_TARGETS", "bench_engines", "bench_vector"]
 
@@ -31,20 +29,6 @@ ENGINE_TARGETS = {
 
 _ENGINES = ("pybullet", "mujoco")
 _ESTIMATORS = ("oracle", "ukf")
-
-
-def _ms_per_step(env: Any, actions: NDArray[np.float32], seed: int) -> float:
-    """Process-time ms per env step over ``actions`` from ``reset(seed)`` (the first 10
-    steps not timed), resetting where an episode ends."""
-    env.reset(seed=seed)
-    for a in actions[:10]:
-        env.step(a)
-    t = time.process_time()
-    for a in actions[10:]:
-        _, _, terminated, truncated, _ = env.step(a)
-        if terminated or truncated:
-            env.reset()
-    return 1e3 * (time.process_time() - t) / max(len(actions) - 10, 1)
 
 
 def _bare_ms_per_period(env: Any, periods: int) -> float:
@@ -74,7 +58,7 @@ def bench_engines(
         for _ in range(repeats):
             for (engine, estimator), env in envs.items():
                 key = f"{engine}_{estimator}_ms_per_step"
-                times.setdefault(key, []).append(_ms_per_step(env, actions, seed))
+                times.setdefault(key, []).append(ms_per_step(env, actions, seed))
             for engine in _ENGINES:
                 env = envs[engine, "oracle"]
                 env.reset(seed=seed)
@@ -112,7 +96,7 @@ def bench_vector(
     single = gym.make(env_id, engine=engine, estimator=estimator)
     shape = single.action_space.shape or ()
     actions = np.random.default_rng(seed).uniform(-1.0, 1.0, (steps, *shape)).astype(np.float32)
-    single_ms = _ms_per_step(single, actions, seed)
+    single_ms = ms_per_step(single, actions, seed)
     single.close()
     vec = gym.make_vec(env_id, num_envs=num_envs, vectorization_mode="vector_entry_point",
                        engine=engine, estimator=estimator)  # fmt: skip

@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.envs.tensegrity_env import TensegrityEnv
     from tensegrity_gym.sim.backend import SimBackend
 
-__all__ = ["bench_env_speed", "bench_env_speed_ratio", "bench_memory", "rss_mb"]
+__all__ = ["bench_env_speed", "bench_env_speed_ratio", "bench_memory", "ms_per_step", "rss_mb"]
 
 
 def rss_mb(pid: int | str = "self") -> float:
@@ -52,6 +52,16 @@ def _timed_steps(env: Any, actions: NDArray[np.float32], clock: Callable[[], flo
         if terminated or truncated:
             env.reset()
     return clock() - t
+
+
+def ms_per_step(env: Any, actions: NDArray[np.float32], seed: int) -> float:
+    """Process-time ms per env step over ``actions`` from ``reset(seed)``, the first 10
+    not timed (warm-up: caches, first allocations), resetting where an episode ends."""
+    env.reset(seed=seed)
+    for a in actions[:10]:
+        env.step(a)
+    seconds = _timed_steps(env, actions[10:], time.process_time)
+    return 1e3 * seconds / max(len(actions) - 10, 1)
 
 
 def bench_env_speed(
@@ -103,11 +113,7 @@ def bench_env_speed_ratio(
     times: dict[str, list[float]] = {name: [] for name in envs}
     for _ in range(repeats):
         for name, env in envs.items():
-            env.reset(seed=seed)
-            for a in actions[:10]:
-                env.step(a)
-            seconds = _timed_steps(env, actions[10:], time.process_time)
-            times[name].append(1e3 * seconds / max(steps - 10, 1))
+            times[name].append(ms_per_step(env, actions, seed))
     for env in envs.values():
         env.close()
     least = {name: min(t) for name, t in times.items()}

@@ -14,7 +14,7 @@ from tensegrity_gym.model.description import DEFAULT_GAIT, RobotDescription, loa
 from tensegrity_gym.model.protocols import Backend, Estimator, backend_sample_kinds
 from tensegrity_gym.model.randomization import Randomization, resolve_randomization
 from tensegrity_gym.model.registry import ESTIMATORS, estimator_spec, task_spec
-from tensegrity_gym.sim.engines import DEFAULT_ENGINE, check_engine
+from tensegrity_gym.sim.engines import DEFAULT_ENGINE, check_engine, engine_spec
 from tensegrity_gym.sim.terrain import Terrain, terrain_builder
 from tensegrity_gym.sim.world import has_display
 from tensegrity_gym.tasks.gaits import FaceGait
@@ -163,8 +163,14 @@ def _check_arguments(
     driver: object,
     viewer_port: object,
     viewer_speed: object,
+    engine: object = DEFAULT_ENGINE,
 ) -> None:
-    """Refuse a bad argument of ``make`` by name, before anything is built."""
+    """Refuse a bad argument of ``make`` by name, before anything is built (an unknown or
+    uninstalled engine too, in a line, rather than at the first reset)."""
+    try:
+        check_engine(engine)
+    except (ValueError, ImportError) as err:
+        raise type(err)(f"make: {err}") from None
     modes = TensegrityEnv.metadata["render_modes"]
     if render_mode is not None and render_mode not in modes:
         raise ValueError(f"make: render_mode={render_mode!r} is not one of {[None, *modes]}")
@@ -191,15 +197,15 @@ def _check_arguments(
 
 
 def _window(render_mode: object, engine: str = DEFAULT_ENGINE) -> bool:
-    """Whether to open PyBullet's window: for ``render_mode="human"`` where there is a
-    display. Without one (a headless Linux machine), or on another engine, the env warns
-    and runs without it, so that ``check_env`` and scripts written for a desktop run
-    there too."""
+    """Whether to open the engine's window: for ``render_mode="human"`` where there is a
+    display. Without one (a headless Linux machine), or on an engine that has none, the
+    env warns and runs without it, so that ``check_env`` and scripts written for a
+    desktop run there too."""
     if render_mode != "human":
         return False
-    if engine != DEFAULT_ENGINE:
+    if not engine_spec(engine).window:
         warnings.warn(
-            f"render_mode='human' opens PyBullet's window; engine {engine!r} has none here: "
+            f"render_mode='human' opens a window; engine {engine!r} has none: "
             "use render_mode='rgb_array' for frames",
             RuntimeWarning,
             stacklevel=3,
@@ -322,11 +328,8 @@ def make_env(
         driver=driver,
         viewer_port=viewer_port,
         viewer_speed=viewer_speed,
+        engine=engine,
     )
-    try:
-        check_engine(engine)  # an unknown or uninstalled engine is refused here, in a line
-    except (ValueError, ImportError) as err:
-        raise type(err)(f"make: {err}") from None
     check_calibration(calibration, world_seed)
     _check_residual(description, residual_gait, base_gait, observe_base, residual_deadband)
     ranges = resolve_randomization(randomization)

@@ -341,7 +341,6 @@ class SimBackend:
         self.terrain: Terrain | None = None
         """This episode's ground, from :meth:`reset` on (for tests and tools)."""
         self._n_steps = round(steps)
-        self.engine = engine
         self._engine = engine_spec(engine)
         self._world: World | None = None
         s = description.sensors
@@ -411,6 +410,11 @@ class SimBackend:
             check_open(self._closed, "the simulation")
             self._world = self._engine.world(self.description, self.time_step, gui=self.gui)
         return self._world
+
+    @property
+    def engine(self) -> str:
+        """The physics engine's name."""
+        return self._engine.name
 
     def render_problem(self) -> str | None:
         """None where this engine renders the RGB-D camera on this machine, else why not."""

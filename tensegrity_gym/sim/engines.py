@@ -12,7 +12,7 @@ terrain=...)``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 from tensegrity_gym.model.registry import Registry, resolve
@@ -99,6 +99,8 @@ class EngineSpec:
     renders: str | Callable[[], str | None] | None = None
     """A check whether this machine can render its camera: returns None, or why not
     (None here: it always can)."""
+    window: bool = False
+    """Its world opens a window for ``render_mode="human"`` (``gui=True``)."""
 
     def world(
         self,
@@ -135,7 +137,7 @@ class EngineSpec:
 
 def _from_plugin(name: str, obj: Any) -> EngineSpec:
     if isinstance(obj, EngineSpec):
-        return obj if obj.name == name else EngineSpec(name, obj.factory, obj.install, obj.renders)
+        return obj if obj.name == name else replace(obj, name=name)
     if callable(obj):
         return EngineSpec(name, obj)
     raise TypeError(f"expected an EngineSpec or a world factory, got {type(obj).__name__}")
@@ -150,10 +152,12 @@ def register_engine(
     *,
     install: str = "",
     renders: str | Callable[[], str | None] | None = None,
+    window: bool = False,
     overwrite: bool = False,
 ) -> EngineSpec:
     """Register a physics engine: ``gym.make(ID, engine=name)`` then builds its worlds."""
-    return ENGINES.register(name, EngineSpec(name, factory, install, renders), overwrite=overwrite)
+    spec = EngineSpec(name, factory, install, renders, window)
+    return ENGINES.register(name, spec, overwrite=overwrite)
 
 
 def engine_spec(name: str) -> EngineSpec:
@@ -171,7 +175,7 @@ def check_engine(name: object) -> EngineSpec:
     return spec
 
 
-register_engine("pybullet", "tensegrity_gym.sim.world:PhysicsWorld")
+register_engine("pybullet", "tensegrity_gym.sim.world:PhysicsWorld", window=True)
 register_engine(
     "mujoco",
     "tensegrity_gym.sim.mujoco_world:MujocoWorld",

@@ -19,6 +19,7 @@ machine without a display it asks for EGL (``MUJOCO_GL=egl``) unless told otherw
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import sys
@@ -72,6 +73,7 @@ _BLOWN_UP = np.array(
 )
 
 
+@functools.cache
 def can_render() -> str | None:
     """None where MuJoCo's offscreen renderer starts on this machine, else why not."""
     try:
@@ -123,7 +125,9 @@ class MujocoWorld:
         self._built_terrain: Terrain | None = None
         self._renderers: dict[tuple[int, int], Any] = {}
         self._release = weakref.finalize(self, _close_renderers, self._renderers)
-        self.set_rest_lengths(description.rest_lengths)
+        self.rest_lengths: list[float] = description.rest_lengths.tolist()
+        """The rest lengths (m), (n_cables,), as of the last period's end."""
+        self.targets: list[float] = [self.rest_lengths[k] for k in description.actuated]
         self._build()
 
     # ------------------------------------------------------------------ construction
@@ -177,7 +181,6 @@ class MujocoWorld:
             np.empty(shape) for shape in ((r, 3), (r, 4), (r, 3), (r, 3), (n, 3))
         )
         self._ground_geom = self.model.geom(0).id  # the floor or the height field is first
-        self._rod_geoms = {int(g) for g in range(self.model.ngeom)} - {self._ground_geom}
 
     @property
     def flat_ground(self) -> bool:
@@ -234,8 +237,7 @@ class MujocoWorld:
         """Set all cables' rest lengths (m); actuated targets follow."""
         self.rest_lengths = [float(x) for x in rest_lengths]
         self.targets = [self.rest_lengths[k] for k in self.description.actuated]
-        if hasattr(self, "data"):
-            self._apply_rest_lengths()
+        self._apply_rest_lengths()
 
     def _apply_rest_lengths(self) -> None:
         """Write :attr:`rest_lengths` into the data: passive cables' controls, the motors'
@@ -255,8 +257,7 @@ class MujocoWorld:
     def _spool(self, nodes: NDArray[np.float64]) -> list[float]:
         """:attr:`spool_lengths` now (the motors' rest lengths mid-period included), with
         the nodes (n, 3) at hand."""
-        rest = np.array(self.rest_lengths)
-        rest[self._actuated] = self.data.act
+        rest = self._rest_now()
         if self._any_held:
             k = self._actuated[self._held]
             lengths = member_lengths(nodes, self.description.cable_nodes[k])
@@ -319,7 +320,7 @@ class MujocoWorld:
             if snapshot_steps[step - 1]:
                 snapshots.append(self.snapshot())
         self.data.ctrl[self._actuated] = 0.0
-        self.rest_lengths = self._rest_now()
+        self.rest_lengths = self._rest_now().tolist()
         if self._unstable() and snapshots and snapshot_steps[n_steps - 1]:
             snapshots[-1] = self.snapshot()  # the period's end, as the backend checks it
         return snapshots
@@ -334,10 +335,11 @@ class MujocoWorld:
         self.data.qvel[:] = np.nan
         return True
 
-    def _rest_now(self) -> list[float]:
+    def _rest_now(self) -> NDArray[np.float64]:
+        """The rest lengths (m), (n_cables,), now: the motors' where they have moved to."""
         rest = np.array(self.rest_lengths)
         rest[self._actuated] = self.data.act
-        return [float(x) for x in rest]
+        return rest
 
     def step_bare(self, n_steps: int) -> None:
         """``mj_step`` alone at the present controls: the ceiling the benchmark compares
