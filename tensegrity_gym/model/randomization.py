@@ -6,7 +6,9 @@ world it puts it in (:class:`WorldDraw`). The estimators keep the nominal descri
 as they would with a real robot: that is the honest sim-to-real setting. The draws go to
 ``info["randomization"]`` at reset and into a recording's run info.
 
-Named presets (``"mild"``, ``"strong"``) are found in :data:`RANDOMIZATIONS`; a lab adds
+Named presets (``"mild"``, ``"strong"``, and ``"description"``: the description's own
+error alone, the world built from a robot whose geometry, motors and cables are not
+quite the ones the estimator is handed) are found in :data:`RANDOMIZATIONS`; a lab adds
 its own with :func:`register_randomization`.
 """
 
@@ -22,7 +24,7 @@ import numpy as np
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
-    from tensegrity_gym.model.description import Cable, RobotDescription, SensorSuite
+    from tensegrity_gym.model.description import Cable, RobotDescription, Rod, SensorSuite
 
 __all__ = [
     "RANDOMIZATIONS",
@@ -48,6 +50,11 @@ class Randomization:
 
     rod_mass: Interval = (1.0, 1.0)
     """Scale of each rod's mass."""
+    rod_length: Interval = (1.0, 1.0)
+    """Scale of each rod's length (its endcaps' distance); the rod stays centred."""
+    endcap_offset: Interval = (0.0, 0.0)
+    """m by which each endcap, where the cables attach, sits further out along its rod
+    than the description says (each end draws its own; negative: further in)."""
     cable_stiffness: Interval = (1.0, 1.0)
     """Scale of each cable's stiffness."""
     cable_damping: Interval = (1.0, 1.0)
@@ -63,6 +70,12 @@ class Randomization:
     """The ground's restitution, drawn in this range; None: the description's."""
     motor_speed: Interval = (1.0, 1.0)
     """Scale of each motor's top speed."""
+    motor_range_offset: Interval = (0.0, 0.0)
+    """m by which each motor's rest-length range (its limits) is shifted: a motor that
+    cannot reach the commands at one end of the description's range."""
+    encoder_zero: Interval = (0.0, 0.0)
+    """m by which each actuated cable is longer than its encoder reads, on top of
+    :attr:`actuated_rest_offset`'s share (an encoder zero set off by a fixed length)."""
     command_latency: Interval = (0.0, 0.0)
     """Seconds between a command and the motors acting on it."""
     imu_noise: Interval = (1.0, 1.0)
@@ -92,6 +105,11 @@ class Randomization:
                 raise ValueError(f"Randomization.{f.name}={value!r} must lie in (-0.5, 0.5)")
             if f.name in _NON_NEGATIVE and low < 0.0:
                 raise ValueError(f"Randomization.{f.name}={value!r} must be >= 0")
+            if f.name in _LENGTHS and not (-_MAX_LENGTH_ERROR < low and high < _MAX_LENGTH_ERROR):
+                raise ValueError(
+                    f"Randomization.{f.name}={value!r} must lie in "
+                    f"(-{_MAX_LENGTH_ERROR:g}, {_MAX_LENGTH_ERROR:g}) m"
+                )
         if self.gravity_tilt[1] >= 0.5 * np.pi:
             raise ValueError(f"Randomization.gravity_tilt={self.gravity_tilt!r} must be < pi/2")
 
@@ -109,13 +127,38 @@ class Randomization:
             rest_length=c.rest_length if c.actuated else c.rest_length * (1.0 + offset),
             motor=motor,
         )
-        return drawn, offset * c.rest_length if c.actuated else 0.0
+        if not c.actuated:
+            return drawn, 0.0
+        zero = offset * c.rest_length + u(self.encoder_zero)
+        if motor is not None:  # drawn after the rest, so that older presets draw as before
+            shift = u(self.motor_range_offset)
+            low, high = motor.min_rest_length + shift, motor.max_rest_length + shift
+            if low <= 0.0:
+                raise ValueError(
+                    f"Randomization.motor_range_offset={self.motor_range_offset!r} moves "
+                    f"cable {c.name!r}'s motor range to {low:.4g}-{high:.4g} m (not > 0)"
+                )
+            motor = replace(motor, min_rest_length=low, max_rest_length=high)
+            drawn = replace(drawn, motor=motor)
+        return drawn, zero
+
+    def _rod(self, rod: Rod, u: _Uniform) -> Rod:
+        """A rod as drawn: its mass, its length and where its endcaps sit."""
+        mass = rod.mass * u(self.rod_mass)
+        length = rod.length * u(self.rod_length) + u(self.endcap_offset) + u(self.endcap_offset)
+        if length <= 2.0 * rod.endcap_radius:
+            raise ValueError(
+                f"Randomization.rod_length={self.rod_length!r} and endcap_offset="
+                f"{self.endcap_offset!r} leave rod {rod.name!r} {length:.4g} m long, no longer "
+                "than its endcaps"
+            )
+        return replace(rod, mass=mass, length=length)
 
     def draw(self, description: RobotDescription, rng: np.random.Generator) -> WorldDraw:
         """The world of one episode: the robot the simulator builds, gravity, latency.
         Draws from ``rng`` in a fixed order, only for ranges that are not nominal."""
         u = _Uniform(rng)
-        rods = tuple(replace(r, mass=r.mass * u(self.rod_mass)) for r in description.rods)
+        rods = tuple(self._rod(r, u) for r in description.rods)
         drawn = [self._cable(c, u) for c in description.cables]
         cables = tuple(c for c, _ in drawn)
         encoder_offsets = np.array([offset for _, offset in drawn])
@@ -157,11 +200,14 @@ def _interval(value: Any, name: str) -> Interval:
     return low, high
 
 
-_SCALES = ("rod_mass", "cable_stiffness", "cable_damping", "friction", "motor_speed",
+_SCALES = ("rod_mass", "rod_length", "cable_stiffness", "cable_damping", "friction", "motor_speed",
            "imu_noise", "uwb_noise", "camera_depth_noise")  # fmt: skip
 _SHARES = ("uwb_packet_loss", "restitution")
 _OFFSETS = ("passive_rest_offset", "actuated_rest_offset")
 _NON_NEGATIVE = ("command_latency", "gravity_tilt")
+_LENGTHS = ("endcap_offset", "motor_range_offset", "encoder_zero")
+_MAX_LENGTH_ERROR = 0.5
+"""m: the largest length error a range may reach (a bigger one is a unit mistake)."""
 
 
 class _Uniform:
@@ -229,6 +275,9 @@ class WorldDraw:
         tilt = np.arccos(-self.gravity[2] / np.linalg.norm(self.gravity))
         return {
             "rod_mass": [_ratio(a.mass, b.mass) for a, b in zip(r.rods, n.rods, strict=True)],
+            "rod_length": [
+                _ratio(a.length, b.length) for a, b in zip(r.rods, n.rods, strict=True)
+            ],
             "cable_stiffness": [_ratio(a.stiffness, b.stiffness) for a, b in pairs],
             "cable_damping": [_ratio(a.damping, b.damping) for a, b in pairs],
             "rest_length_offset": [
@@ -236,6 +285,14 @@ class WorldDraw:
                 for (a, b), e in zip(pairs, self.encoder_offsets, strict=True)
             ],
             "motor_speed": [_ratio(a.max_speed, b.max_speed) for a, b in motors],
+            "motor_range_offset_m": [
+                round(a.min_rest_length - b.min_rest_length, 5) for a, b in motors
+            ],
+            "encoder_zero_m": [
+                round(float(e), 5)
+                for (a, _), e in zip(pairs, self.encoder_offsets, strict=True)
+                if a.actuated
+            ],
             "friction": _ratio(r.ground.lateral_friction, n.ground.lateral_friction),
             "restitution": round(r.ground.restitution, 4),
             "imu_noise": _ratio(r.sensors.imu.accel_noise, n.sensors.imu.accel_noise),
@@ -272,6 +329,10 @@ RANDOMIZATIONS: dict[str, Randomization] = {
     ),
     "strong": Randomization(
         rod_mass=(0.75, 1.25),
+        rod_length=(0.98, 1.02),
+        endcap_offset=(-0.01, 0.01),
+        motor_range_offset=(-0.03, 0.03),
+        encoder_zero=(-0.03, 0.03),
         cable_stiffness=(0.7, 1.3),
         cable_damping=(0.5, 1.5),
         passive_rest_offset=(-0.03, 0.03),
@@ -286,8 +347,20 @@ RANDOMIZATIONS: dict[str, Randomization] = {
         camera_depth_noise=(1.0, 2.0),
         gravity_tilt=(0.0, float(np.radians(5.0))),
     ),
+    "description": Randomization(
+        rod_mass=(0.9, 1.1),
+        rod_length=(0.98, 1.02),
+        endcap_offset=(-0.01, 0.01),
+        cable_stiffness=(0.85, 1.15),
+        passive_rest_offset=(-0.02, 0.02),
+        motor_range_offset=(-0.03, 0.03),
+        encoder_zero=(-0.03, 0.03),
+    ),
 }
-"""The named presets; :func:`register_randomization` adds a lab's."""
+"""The named presets; :func:`register_randomization` adds a lab's. ``"description"``
+is the description's error alone (issue: a lab's description is never exact): rod
+lengths within 2 %, endcaps within 1 cm, motor ranges and encoder zeros within 3 cm,
+cable stiffness within 15 %, passive rest lengths within 2 %, rod masses within 10 %."""
 
 
 def register_randomization(name: str, randomization: Randomization) -> None:

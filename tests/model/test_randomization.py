@@ -44,7 +44,7 @@ def test_the_same_generator_state_draws_the_same_world() -> None:
     assert a.robot != c.robot
 
 
-@pytest.mark.parametrize("name", ["mild", "strong"])
+@pytest.mark.parametrize("name", ["mild", "strong", "description"])
 def test_every_draw_lies_in_its_range(name: str) -> None:
     r = RANDOMIZATIONS[name]
     for seed in range(20):
@@ -56,6 +56,8 @@ def test_every_draw_lies_in_its_range(name: str) -> None:
         offsets = np.array(s["rest_length_offset"])
         actuated = np.array([c.actuated for c in D.cables])
         low, high = r.actuated_rest_offset
+        zero = np.array(r.encoder_zero) / D.rest_lengths[actuated].min()
+        low, high = low + zero[0], high + zero[1]
         assert np.all((offsets[actuated] >= low - 1e-5) & (offsets[actuated] <= high + 1e-5))
         low, high = r.passive_rest_offset
         assert np.all((offsets[~actuated] >= low - 1e-5) & (offsets[~actuated] <= high + 1e-5))
@@ -64,9 +66,17 @@ def test_every_draw_lies_in_its_range(name: str) -> None:
         assert 0.0 <= s["gravity_tilt_deg"] <= np.degrees(r.gravity_tilt[1]) + 1e-9
         assert np.linalg.norm(world.gravity) == pytest.approx(D.gravity)
         assert r.command_latency[0] <= world.command_latency <= r.command_latency[1]
-        # The robot's geometry is the description's: only its physics departs.
-        assert world.robot.nodes == D.nodes
-        assert [rod.length for rod in world.robot.rods] == [rod.length for rod in D.rods]
+        assert world.robot.nodes == D.nodes  # where the robot is built, before it settles
+        # The rods' lengths: the scale and both endcaps' offsets.
+        low = r.rod_length[0] + 2.0 * r.endcap_offset[0] / max(x.length for x in D.rods)
+        high = r.rod_length[1] + 2.0 * r.endcap_offset[1] / min(x.length for x in D.rods)
+        assert all(low - 1e-5 <= v <= high + 1e-5 for v in s["rod_length"])
+        zero = r.actuated_rest_offset[1] * D.rest_lengths.max() + r.encoder_zero[1]
+        assert np.all(np.abs(s["encoder_zero_m"]) <= zero + 1e-5)
+        assert np.all(np.abs(s["motor_range_offset_m"]) <= r.motor_range_offset[1] + 1e-5)
+        if name == "mild":  # the mild worlds keep the description's geometry and motors
+            assert [x.length for x in world.robot.rods] == [x.length for x in D.rods]
+            assert s["motor_range_offset_m"] == [0.0] * len(s["motor_range_offset_m"])
 
 
 @pytest.mark.parametrize(
@@ -79,6 +89,8 @@ def test_every_draw_lies_in_its_range(name: str) -> None:
         ({"command_latency": (-0.1, 0.0)}, r"command_latency=.* must be >= 0"),
         ({"gravity_tilt": (0.0, 2.0)}, r"gravity_tilt=.* must be < pi/2"),
         ({"friction": 1.2}, r"friction=1.2 must be a \(low, high\) pair"),
+        ({"encoder_zero": (-30.0, 30.0)}, r"encoder_zero=.* must lie in \(-0.5, 0.5\) m"),
+        ({"rod_length": (0.0, 1.0)}, r"rod_length=.*: a scale must be > 0"),
     ],
 )
 def test_bad_ranges_are_refused_by_field(kwargs: dict[str, object], message: str) -> None:
@@ -86,10 +98,57 @@ def test_bad_ranges_are_refused_by_field(kwargs: dict[str, object], message: str
         Randomization(**kwargs)  # type: ignore[arg-type]
 
 
+def test_the_description_error_family_moves_geometry_motors_and_encoders() -> None:
+    """``"description"``: rods, endcaps, motor ranges and encoder zeros drawn per part;
+    the sensor models and the ground stay the description's."""
+    r = RANDOMIZATIONS["description"]
+    world = r.draw(D, np.random.default_rng(2))
+    s = world.summary(D)
+    assert len(set(s["rod_length"])) == len(D.rods) and 1.0 not in s["rod_length"]
+    assert len(set(s["motor_range_offset_m"])) == D.n_actuated
+    motors = [(a.motor, b.motor) for a, b in zip(world.robot.cables, D.cables, strict=True)
+              if a.motor is not None and b.motor is not None]  # fmt: skip
+    for a, b in motors:  # the range shifted whole: the same span
+        assert a.max_rest_length - a.min_rest_length == pytest.approx(
+            b.max_rest_length - b.min_rest_length
+        )
+    assert world.robot.ground == D.ground and world.robot.sensors == D.sensors
+    assert np.all(world.gravity == [0.0, 0.0, -D.gravity]) and world.command_latency == 0.0
+    # An error that leaves a rod shorter than its endcaps, or a motor range below 0 m.
+    with pytest.raises(ValueError, match=r"leave rod 'red' -0.275 m long, no longer than its endcaps"):
+        Randomization(endcap_offset=(-0.3, -0.3)).draw(D, np.random.default_rng(0))
+    with pytest.raises(ValueError, match=r"moves cable .* motor range to -0.*\(not > 0\)"):
+        Randomization(motor_range_offset=(-0.3, -0.3)).draw(D, np.random.default_rng(0))
+
+
+def test_a_world_with_description_error_is_built_as_drawn() -> None:
+    """The simulator builds the drawn rods (their endcaps' distance) and drives the
+    motors within the drawn ranges; the estimator's description stays nominal."""
+    env = _env("description")
+    _, info = env.reset(seed=3)
+    backend = env.unwrapped.backend  # type: ignore[attr-defined]
+    drawn = backend.world.description
+    nodes = backend.ground_truth().node_positions
+    lengths = [float(np.linalg.norm(nodes[a] - nodes[b])) for a, b in D.rod_nodes]
+    np.testing.assert_allclose(lengths, [x.length for x in drawn.rods], atol=1e-6)
+    assert info["randomization"]["rod_length"] == [
+        round(x.length / y.length, 5) for x, y in zip(drawn.rods, D.rods, strict=True)
+    ]
+    assert env.unwrapped.backend.description == D  # type: ignore[attr-defined]
+    lo = np.array([c.motor.min_rest_length for c in D.cables if c.motor is not None])
+    for _ in range(12):  # command the lowest rest lengths; the motors stop at their own
+        env.step(env.unwrapped.targets_to_action(lo))  # type: ignore[attr-defined]
+    rest = backend.ground_truth().rest_lengths[D.actuated]
+    drawn_lo = np.array([c.motor.min_rest_length for c in drawn.cables if c.motor is not None])
+    zero = np.array(info["randomization"]["encoder_zero_m"])
+    np.testing.assert_allclose(rest, np.maximum(lo + zero, drawn_lo), atol=1e-5)  # zero: 5 dp
+    env.close()
+
+
 def test_names_resolve_and_a_lab_registers_its_own() -> None:
     assert resolve_randomization(None) is None
     assert resolve_randomization("mild") is RANDOMIZATIONS["mild"]
-    with pytest.raises(ValueError, match=r"randomization='wild' must be None, one of \['mild'"):
+    with pytest.raises(ValueError, match=r"randomization='wild' must be None, one of \['description', 'mild'"):
         resolve_randomization("wild")
     mine = Randomization(rod_mass=(0.95, 1.05))
     register_randomization("lab_test", mine)
