@@ -6,7 +6,7 @@ after more than ``max_prediction_time`` without one), holds the counts of physic
 implausible readings by kind and the failed sensor streams of the estimator's
 :class:`~estimation.screen.PlausibilityScreen`, and fills the health fields of each
 :class:`~tensegrity_gym.model.estimate.Estimate` (``healthy``, ``reinitialised``,
-``rejected``, ``failed_streams``).
+``rejected``, ``failed_streams``, ``description_mismatch``).
 
 Time is counted in integer nanoseconds, so that a sum of periods is exact and does not
 depend on where the clock started.
@@ -38,6 +38,10 @@ class Screen(Protocol):
     @property
     def failed(self) -> tuple[str, ...]:
         """The streams not in use, sorted."""
+
+    @property
+    def mismatches(self) -> tuple[str, ...]:
+        """A line per channel whose readings contradict the description."""
 
 
 @dataclass(frozen=True)
@@ -98,6 +102,11 @@ class EstimatorHealth:
         """Sensor streams not in use because they were implausible for a while."""
         return self.screen.failed if self.screen is not None else ()
 
+    @property
+    def mismatches(self) -> tuple[str, ...]:
+        """Where the readings contradict the description (kept in use), a line each."""
+        return self.screen.mismatches if self.screen is not None else ()
+
     # ------------------------------------------------------------------ events
 
     def predicted(self, duration_ns: int, *, corrected: bool) -> None:
@@ -155,16 +164,18 @@ class EstimatorHealth:
             reinitialised=self._reinitialised,
             failed_streams=self.failed_streams,
             rejected=self.implausible if self.screen is not None else None,
+            description_mismatch=self.mismatches,
         )
         self._reinitialised = False
         return out
 
     def summary(self) -> dict[str, object]:
         """The counts, for a report: ``divergences`` and ``reinitialisations`` by reason,
-        ``implausible`` by kind, ``failed_streams``."""
+        ``implausible`` by kind, ``failed_streams``, ``description_mismatch``."""
         return {
             "divergences": dict(self.divergences),
             "reinitialisations": dict(self.reinitialisations_by_reason),
             "implausible": self.implausible,
             "failed_streams": list(self.failed_streams),
+            "description_mismatch": list(self.mismatches),
         }

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from estimation.mismatch import ChannelLimits, LimitMismatch
+from estimation.plausibility import Verdict
 from tensegrity_gym.model.samples import (
     AhrsSample,
     CableLengthSample,
@@ -29,7 +31,7 @@ if TYPE_CHECKING:
 
     from numpy.typing import ArrayLike, NDArray
 
-    from estimation.plausibility import PlausibilityBounds, Verdict
+    from estimation.plausibility import PlausibilityBounds
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.samples import Sample
 
@@ -123,6 +125,10 @@ class PlausibilityScreen:
     pass untouched. A UWB round loses its implausible ranges, a cable sample has its
     implausible entries set to NaN (no reading); other samples pass whole or not at all.
 
+    Encoder readings beyond the motor range that read as the description's error, not a
+    fault (:mod:`estimation.mismatch`), are kept and counted in
+    :attr:`beyond_description`; :attr:`mismatches` says which channels and by how much.
+
     Args:
         description: the robot (names of rods and nodes, sizes of readings).
         bounds: what is plausible.
@@ -148,11 +154,19 @@ class PlausibilityScreen:
         self._modules += [f"uwb/anchor{k}" for k in range(n_anchors)]
         self._n_cables = d.n_cables
         self._n_actuated = d.n_actuated
+        self.encoder_mismatch = LimitMismatch(ChannelLimits.motors(d))
+        self.beyond_description: dict[str, int] = {}
+        """Readings kept although beyond the description's limits, by kind."""
 
     @property
     def failed(self) -> tuple[str, ...]:
         """The failed streams, sorted."""
         return self.monitor.failed
+
+    @property
+    def mismatches(self) -> tuple[str, ...]:
+        """A line per channel whose readings contradict the description (kept in use)."""
+        return self.encoder_mismatch.mismatches
 
     def timely(self, samples: Sequence[Sample]) -> list[Sample]:
         """The samples whose stamps can be believed, in their order: not NaN or inf, and
@@ -240,11 +254,32 @@ class PlausibilityScreen:
         )
 
     def _encoders(self, samples: list[EncoderSample]) -> list[bool]:
-        verdict = self.bounds.encoders(_stack([s.rest_lengths for s in samples], self._n_actuated))
-        self._count_verdict(verdict)
+        x = _stack([s.rest_lengths for s in samples], self._n_actuated)
         times = np.array([s.t for s in samples], dtype=np.float64)
-        in_use = self.monitor.observe_many("encoders", times, verdict.plausible)
-        return list((in_use & verdict.plausible).tolist())
+        verdict = self.bounds.encoders(x)
+        if "encoder_out_of_range" in verdict.reasons:
+            verdict = self._beyond_description(times, x, verdict)
+        self._count_verdict(verdict)
+        use = self.monitor.observe_many("encoders", times, verdict.plausible) & verdict.plausible
+        self.encoder_mismatch.accept(times[use], x[use])
+        return list(use.tolist())
+
+    def _beyond_description(
+        self, times: NDArray[np.float64], x: NDArray[np.float64], verdict: Verdict
+    ) -> Verdict:
+        """``verdict`` with the rows out of range only by a description mismatch made
+        plausible (counted as ``encoder_beyond_description``)."""
+        b = self.bounds
+        beyond = (x < b.rest_length_min) | (x > b.rest_length_max)
+        mismatch = self.encoder_mismatch.judge(times, x, beyond)
+        out = verdict.reasons["encoder_out_of_range"]
+        kept = out & ~(beyond & ~mismatch).any(axis=1)
+        n = int(np.count_nonzero(kept))
+        self.beyond_description["encoder"] = self.beyond_description.get("encoder", 0) + n
+        reasons = dict(verdict.reasons, encoder_out_of_range=out & ~kept)
+        if not reasons["encoder_out_of_range"].any():
+            del reasons["encoder_out_of_range"]
+        return Verdict(verdict.plausible | kept, reasons)
 
     def _cables(self, sample: CableLengthSample) -> CableLengthSample | None:
         x = np.asarray(sample.lengths, dtype=np.float64).reshape(-1)

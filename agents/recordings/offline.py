@@ -427,6 +427,8 @@ def _estimate_one(
         # Measurements the estimator's screen refused as physically impossible (a
         # range of -50 m), by kind: counted since its reset, so the last estimate's.
         "estimator_rejected": dict(sorted((estimates[-1].rejected or {}).items())),
+        # Where the readings contradict the description (kept in use), a line each.
+        "description_mismatch": list(estimates[-1].description_mismatch),
         "finite": bool(finite.all()),
         **calibration_against_truth(backend),
     }

@@ -45,7 +45,9 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     ``info`` holds ``com_estimate`` (m, (3,)), ``progress`` (m, the task's),
     ``estimator_healthy``, ``estimator_reinitialised``, ``estimator_failed_streams``
     (streams the estimator stopped fusing as implausible), ``estimator_rejected``
-    (implausible measurements by kind), ``reward_rejected`` (why a step earned no reward,
+    (implausible measurements by kind), ``estimator_description_mismatch`` (where the
+    readings contradict the description, a line each; those readings are kept),
+    ``reward_rejected`` (why a step earned no reward,
     else None), ``sim_diverged``, ``calibration`` (where the estimators' UWB calibration
     came from: ``"estimated"``, ``"true"`` or a file) and, where the backend has ground
     truth, ``com_true`` and
@@ -145,6 +147,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             "sim_diverged": diverged,
             "estimator_failed_streams": list(estimate.failed_streams),
             "estimator_rejected": dict(estimate.rejected or {}),
+            "estimator_description_mismatch": list(estimate.description_mismatch),
             "reward_rejected": None,
             "calibration": self.calibration,
         }

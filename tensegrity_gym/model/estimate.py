@@ -42,6 +42,10 @@ class Estimate:
     rejected: Mapping[str, int] | None = None
     """Measurements rejected as physically implausible since the last reset, counted by
     kind (e.g. ``"uwb_range_too_long"``); None where the method does not count them."""
+    description_mismatch: tuple[str, ...] = ()
+    """Where the readings contradict the robot description, a line each (``"motor 2
+    (cable 'c2') reads 0.067-0.197 m, the description's motor range is 0.124-0.237
+    m"``): readings kept in use, the description is what is off."""
     pose_covariance: NDArray[np.float64] | None = None
     """Covariance of the body pose where the method tracks one (the invariant EKF), (6, 6):
     rotation error (rad, world frame) then position (m)."""

@@ -275,9 +275,7 @@ class WorldDraw:
         tilt = np.arccos(-self.gravity[2] / np.linalg.norm(self.gravity))
         return {
             "rod_mass": [_ratio(a.mass, b.mass) for a, b in zip(r.rods, n.rods, strict=True)],
-            "rod_length": [
-                _ratio(a.length, b.length) for a, b in zip(r.rods, n.rods, strict=True)
-            ],
+            "rod_length": [_ratio(a.length, b.length) for a, b in zip(r.rods, n.rods, strict=True)],
             "cable_stiffness": [_ratio(a.stiffness, b.stiffness) for a, b in pairs],
             "cable_damping": [_ratio(a.damping, b.damping) for a, b in pairs],
             "rest_length_offset": [

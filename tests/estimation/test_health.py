@@ -22,6 +22,7 @@ class _Screen:
     def __init__(self) -> None:
         self.rejected = {"uwb_range_too_long": 3}
         self.failed = ("uwb",)
+        self.mismatches = ("motor 0 (cable 'c0') reads 0.1-0.2 m, ...",)
 
 
 def test_no_correction_for_longer_than_the_limit_is_unhealthy_to_the_nanosecond() -> None:
@@ -77,6 +78,7 @@ def test_the_screen_counts_reach_the_estimate() -> None:
     with_screen = EstimatorHealth(HealthParams(), _Screen()).fill(_estimate())
     assert with_screen.rejected == {"uwb_range_too_long": 3}
     assert with_screen.failed_streams == ("uwb",)
+    assert with_screen.description_mismatch == ("motor 0 (cable 'c0') reads 0.1-0.2 m, ...",)
     without = EstimatorHealth(HealthParams())
     assert without.fill(_estimate()).rejected is None
     assert without.summary() == {
@@ -84,6 +86,7 @@ def test_the_screen_counts_reach_the_estimate() -> None:
         "reinitialisations": {},
         "implausible": {},
         "failed_streams": [],
+        "description_mismatch": [],
     }
 
 

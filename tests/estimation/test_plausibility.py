@@ -27,6 +27,8 @@ from tests.hardware.test_bag_robustness import _edit_every, _rewrite
 if TYPE_CHECKING:
     from pathlib import Path
 
+    from numpy.typing import NDArray
+
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import Sample
@@ -360,3 +362,119 @@ def test_a_stalled_links_seconds_of_samples_are_kept_whole() -> None:
     assert screen.timely(samples) == samples and "stamp_in_future" not in counts
     glitch = EncoderSample(samples[-1].t + 5.0, command)
     assert screen.timely([*samples, glitch]) == samples and counts["stamp_in_future"] == 1
+
+
+# ------------------------------------------------- readings that contradict the description
+
+
+def _encoder_stream(d: RobotDescription, channel: int, path: NDArray[np.float64],
+                    rate: float = 100.0) -> list[Sample]:  # fmt: skip
+    """Encoder samples at ``rate`` Hz: every motor mid-range, ``channel`` along ``path``."""
+    lo, hi, _ = d.motor_limits
+    out: list[Sample] = []
+    for k, value in enumerate(path):
+        x = 0.5 * (lo + hi)
+        x[channel] = value
+        out.append(EncoderSample(k / rate, x))
+    return out
+
+
+def test_a_channel_smoothly_beyond_its_range_is_a_mismatch_kept_and_said_once(
+    robot: Any, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Motor 2 moves at its top speed from mid-range to 6 cm below the description's
+    range and stays there (a robot whose motor range the description has wrong): every
+    reading is kept, nothing rejected, and one line says which motor, what it reads and
+    the description's range."""
+    d, _, b = robot
+    lo, hi, speed = d.motor_limits
+    down = np.arange(0.5 * (lo[2] + hi[2]), lo[2] - 0.06, -speed[2] / 100.0)
+    path = np.concatenate([down, np.full(200, lo[2] - 0.06)])
+    screen = PlausibilityScreen(d, b, 1.0)
+    samples = _encoder_stream(d, 2, path)
+    with caplog.at_level("WARNING", logger="estimation.mismatch"):
+        kept = [s for k in range(0, len(samples), 10) for s in screen.screen(samples[k : k + 10])]
+    assert len(kept) == len(samples) and screen.rejected == {} and screen.failed == ()
+    assert screen.beyond_description["encoder"] > 200
+    cable = d.cables[int(d.actuated[2])].name
+    line = (f"motor 2 (cable {cable!r}) reads {path.min():.3f}-{path.max():.3f} m, the "
+            f"description's motor range is {lo[2]:.3f}-{hi[2]:.3f} m")  # fmt: skip
+    assert screen.mismatches == (line,)
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and said[0].startswith(f"description mismatch: motor 2 (cable {cable!r})")
+
+
+def test_a_reading_that_jumps_beyond_or_is_absurd_is_still_a_fault(robot: Any) -> None:
+    """A jump from mid-range to just beyond the range, a reading a whole span beyond
+    it, a negative one: dropped as out of range, not taken for the description's error;
+    and a stuck absurd channel fails the stream as before."""
+    d, _, b = robot
+    lo, hi, _ = d.motor_limits
+    mid = 0.5 * (lo[1] + hi[1])
+    for bad in (hi[1] + 0.03, hi[1] + 1.5 * (hi[1] - lo[1]), -0.01):
+        screen = PlausibilityScreen(d, b, 1.0)
+        path = np.array([mid, mid, bad, mid])
+        kept = screen.screen(_encoder_stream(d, 1, path))
+        assert [float(s.rest_lengths[1]) for s in kept] == [mid, mid, mid], bad
+        assert screen.rejected == {"encoder_out_of_range": 1} and screen.mismatches == ()
+    screen = PlausibilityScreen(d, b, 1.0)
+    stuck = np.concatenate([[mid], np.full(150, hi[1] + 2.0 * (hi[1] - lo[1]))])
+    screen.screen(_encoder_stream(d, 1, stuck))
+    assert screen.failed == ("encoders",) and screen.mismatches == ()
+
+
+def test_a_channel_beyond_its_range_from_the_start_is_a_mismatch(robot: Any) -> None:
+    """No reading in use yet: the first reading beyond the range, within reach, cannot
+    be a jump; the channel then moves smoothly and stays in use."""
+    d, _, b = robot
+    _, hi, speed = d.motor_limits
+    path = hi[0] + 0.04 - np.arange(50) * 0.5 * speed[0] / 100.0
+    screen = PlausibilityScreen(d, b, 1.0)
+    kept = screen.screen(_encoder_stream(d, 0, path))
+    assert len(kept) == 50 and screen.rejected == {}
+    assert screen.mismatches[0].startswith("motor 0 ")
+
+
+@pytest.mark.parametrize(
+    ("estimator", "preset", "shift"),
+    [("ukf", "three_bar", -0.05), ("inekf", "three_bar_large", 0.1)],
+)
+def test_an_estimator_keeps_the_encoders_of_a_robot_whose_motor_range_differs(
+    estimator: str, preset: str, shift: float
+) -> None:
+    """A robot built with its motors' range ``shift`` m off its description, driven to
+    its own limit: the estimator, handed the description, keeps every encoder reading,
+    names the motors in ``description_mismatch`` and is on track once the robot rests."""
+    from dataclasses import replace
+
+    from tensegrity_gym.model.registry import estimator_spec
+
+    d = load_robot(preset)
+    cables = tuple(
+        replace(c, motor=replace(c.motor, min_rest_length=c.motor.min_rest_length + shift,
+                                 max_rest_length=c.motor.max_rest_length + shift))
+        if c.motor is not None else c
+        for c in d.cables
+    )  # fmt: skip
+    robot = replace(d, cables=cables)
+    backend = SimBackend(robot)
+    rng = np.random.default_rng(0)
+    start = backend.reset(rng)
+    est = estimator_spec(estimator).create()
+    hold = d.rest_lengths[d.actuated]
+    est.reset(d, backend.calibration, start.samples, hold, rng)
+    limit = robot.motor_limits[0 if shift < 0 else 1]
+    errors = []
+    for _ in range(40):
+        estimate = est.update(list(backend.step(limit).samples), limit)
+        errors.append(float(np.linalg.norm(estimate.com - backend.ground_truth().com)))
+    assert not any(k.startswith("encoder") for k in (estimate.rejected or {}))
+    assert "encoders" not in estimate.failed_streams
+    assert len(estimate.description_mismatch) >= d.n_actuated // 2  # (some hold slack)
+    assert all("the description's motor range is" in x for x in estimate.description_mismatch)
+    true_rest = backend.ground_truth().rest_lengths[d.actuated]  # beyond the description's
+    step = d.sensors.encoder.resolution
+    np.testing.assert_allclose(estimate.rest_lengths, true_rest, atol=2 * step)
+    # The InEKF comes to 1 cm at home on this robot, 2-4 cm here (its cables 10 cm
+    # longer than it was built for: a slacker, floppier shape); the UKF stays under 1 cm.
+    assert max(errors[-10:]) < (0.05 if estimator == "inekf" else 0.015), errors

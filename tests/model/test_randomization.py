@@ -115,7 +115,7 @@ def test_the_description_error_family_moves_geometry_motors_and_encoders() -> No
     assert world.robot.ground == D.ground and world.robot.sensors == D.sensors
     assert np.all(world.gravity == [0.0, 0.0, -D.gravity]) and world.command_latency == 0.0
     # An error that leaves a rod shorter than its endcaps, or a motor range below 0 m.
-    with pytest.raises(ValueError, match=r"leave rod 'red' -0.275 m long, no longer than its endcaps"):
+    with pytest.raises(ValueError, match=r"leave rod 'red' -0.275 m long, no longer than"):
         Randomization(endcap_offset=(-0.3, -0.3)).draw(D, np.random.default_rng(0))
     with pytest.raises(ValueError, match=r"moves cable .* motor range to -0.*\(not > 0\)"):
         Randomization(motor_range_offset=(-0.3, -0.3)).draw(D, np.random.default_rng(0))
@@ -148,7 +148,7 @@ def test_a_world_with_description_error_is_built_as_drawn() -> None:
 def test_names_resolve_and_a_lab_registers_its_own() -> None:
     assert resolve_randomization(None) is None
     assert resolve_randomization("mild") is RANDOMIZATIONS["mild"]
-    with pytest.raises(ValueError, match=r"randomization='wild' must be None, one of \['description', 'mild'"):
+    with pytest.raises(ValueError, match=r"'wild' must be None, one of \['description', 'mild'"):
         resolve_randomization("wild")
     mine = Randomization(rod_mass=(0.95, 1.05))
     register_randomization("lab_test", mine)
