@@ -492,9 +492,9 @@ def evaluate_policies(
 def _check_robot(env_id: str, robot: Any, conditions: Sequence[Condition]) -> None:
     """Refuse, before any episode runs, a condition whose estimator cannot run on the
     robot of ``env_id`` (``robot``: its preset name, YAML path or description)."""
-    name = robot.name if isinstance(robot, RobotDescription) else load_robot(robot).name
+    description = robot if isinstance(robot, RobotDescription) else load_robot(robot)
     for c in conditions:
-        missing = estimator_spec(c.estimator).missing(None, name)
+        missing = estimator_spec(c.estimator).missing(None, description)
         if missing is not None:
             raise ValueError(f"{env_id}: condition {c.name!r}: {missing}")
 

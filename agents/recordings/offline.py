@@ -391,9 +391,7 @@ def _estimate_one(
     backend = ReplayBackend(path, description=description, strict=strict)
     backend.uwb_calibration = uwb
     try:
-        missing = estimator_spec(estimator).missing(
-            backend.sample_kinds(), backend.description.name
-        )
+        missing = estimator_spec(estimator).missing(backend.sample_kinds(), backend.description)
         if missing is not None:
             raise ValueError(f"{path}: {missing}")
         wall = time.perf_counter()

@@ -28,7 +28,22 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import Sample
 
-__all__ = ["IcpEstimator"]
+__all__ = ["IcpEstimator", "structure_problem"]
+
+
+def structure_problem(description: RobotDescription) -> str | None:
+    """Why the tracker cannot serve ``description``, or None where it can: it follows
+    the three rods of a 3-bar prism (Lu et al. 2022), each told apart by its colour; on
+    a six-rod robot it loses track (SUPERball: re-initialisations and a CoM error of
+    centimetres, against millimetres on the 3-bar)."""
+    n = description.n_rods
+    if n != 3:
+        return (
+            f"the RGB-D tracker follows the three rods of a 3-bar prism; this robot has {n} "
+            "rods, on which it loses track"
+        )
+    return None
+
 
 HEALTH = HealthParams(max_prediction_time=0.0, healthy_when_reinitialised=True)
 """Every update must track a frame; one that re-initialised from a fresh frame has."""

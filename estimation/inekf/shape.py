@@ -86,7 +86,7 @@ if TYPE_CHECKING:
     ]
     """See :meth:`ShapeReconstructor._problem`."""
 
-__all__ = ["ShapeConfig", "ShapeReconstructor", "ShapeSolution"]
+__all__ = ["ShapeConfig", "ShapeReconstructor", "ShapeSolution", "structure_problem"]
 
 
 @dataclass(frozen=True)
@@ -988,6 +988,21 @@ def _short_cables(
 
 
 # ------------------------------------------------------------------------ the solver
+
+
+def structure_problem(description: RobotDescription) -> str | None:
+    """Why the shape solver, and so the invariant EKF, cannot serve ``description``, or
+    None where it can: it needs a 3-bar prism (three rods whose actuated cables join
+    their ends in two triangles, 15d-l), of any name, size and handedness."""
+    d = description
+    if d.n_rods != 3:
+        return f"it needs a 3-bar prism (three rods); this robot has {d.n_rods} rods"
+    if _prism_ends(d, 0) is None:
+        return (
+            "it needs a 3-bar prism whose actuated cables join the rods' ends in two "
+            "triangles; this robot's actuated cables do not"
+        )
+    return None
 
 
 def _prism_ends(

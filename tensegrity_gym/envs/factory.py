@@ -46,7 +46,7 @@ def make_estimator(name: str | Estimator, backend: Backend) -> Estimator:
         if problem is not None:
             raise ValueError(f"make: estimator {name!r} needs the RGB-D camera: {problem}")
         backend.camera = True  # the simulator says rgbd only while it renders frames
-    missing = spec.missing(backend_sample_kinds(backend), backend.description.name)
+    missing = spec.missing(backend_sample_kinds(backend), backend.description)
     if missing is not None:
         raise ValueError(f"make: {missing}")
     return spec.create(backend.ground_truth)

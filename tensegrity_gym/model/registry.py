@@ -142,6 +142,10 @@ class EstimatorSpec:
     summary: str = ""
     needs: dict[str, str] = field(default_factory=dict, compare=False)
     """Why each requirement, for messages: kind -> what it is used for."""
+    structure: str | Callable[[RobotDescription], str | None] | None = None
+    """What it needs of the robot's structure, whatever its name and size:
+    ``structure(description)`` says why it cannot serve that robot, or None where it
+    can (a ``"module:attribute"`` string, imported when a robot is checked)."""
 
     def __post_init__(self) -> None:
         unknown = sorted(self.requires - set(SAMPLE_KINDS) - {GROUND_TRUTH})
@@ -161,13 +165,21 @@ class EstimatorSpec:
             return factory(ground_truth)  # type: ignore[no-any-return]
         return factory()  # type: ignore[no-any-return]
 
-    def missing(self, available: Collection[str] | None, robot: str | None = None) -> str | None:
+    def missing(
+        self, available: Collection[str] | None, robot: RobotDescription | str | None = None
+    ) -> str | None:
         """Why this estimator cannot run on a source that provides the kinds
-        ``available`` (None: not known yet) for the robot ``robot``, else None."""
-        if robot is not None and self.robots is not None and robot not in self.robots:
+        ``available`` (None: not known yet) for the robot ``robot`` (its description,
+        whose structure is checked too, or its name), else None."""
+        name = robot if robot is None or isinstance(robot, str) else robot.name
+        if name is not None and self.robots is not None and name not in self.robots:
             return (
-                f"estimator {self.name!r} supports the robots {sorted(self.robots)}, not {robot!r}"
+                f"estimator {self.name!r} supports the robots {sorted(self.robots)}, not {name!r}"
             )
+        if self.structure is not None and robot is not None and not isinstance(robot, str):
+            problem = resolve(self.structure)(robot)
+            if problem is not None:
+                return f"estimator {self.name!r} cannot serve robot {name!r}: {problem}"
         if available is None:
             return None
         lacking = [k for k in sorted(self.requires) if k not in available]
@@ -199,6 +211,7 @@ def register_estimator(
     robots: Iterable[str] | None = None,
     summary: str = "",
     needs: dict[str, str] | None = None,
+    structure: str | Callable[[RobotDescription], str | None] | None = None,
     overwrite: bool = False,
 ) -> EstimatorSpec:
     """Register an estimator: ``gym.make(..., estimator=name)``, ``estimate``, ``train``,
@@ -211,6 +224,7 @@ def register_estimator(
         None if robots is None else frozenset(robots),
         summary,
         dict(needs or {}),
+        structure,
     )
     return ESTIMATORS.register(name, spec, overwrite=overwrite)
 
@@ -232,6 +246,7 @@ register_estimator(
     "estimation.icp:IcpEstimator",
     requires=("rgbd", "cable_lengths"),
     camera=True,
+    structure="estimation.icp.estimator:structure_problem",
     summary="the RGB-D tracker of Lu et al. 2022",
     needs={"rgbd": "RGB-D camera frames", "cable_lengths": "cable-length sensors"},
 )
@@ -239,7 +254,7 @@ register_estimator(
     "inekf",
     "estimation.inekf:InekfEstimator",
     requires=("imu", "encoders"),
-    robots=("three_bar", "three_bar_large"),
+    structure="estimation.inekf.shape:structure_problem",
     summary="the proprioceptive invariant EKF of Tong et al. 2024 (IMU, encoders, contacts)",
     needs={
         "imu": "the base rod's IMU, to propagate the pose",

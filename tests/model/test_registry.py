@@ -165,14 +165,15 @@ def test_evaluate_refuses_a_task_it_cannot_measure_in_one_line() -> None:
 
 
 def test_evaluate_refuses_an_estimator_the_robot_has_not_before_any_episode() -> None:
-    """The InEKF supports the 3-bar robots only: evaluating a SUPERball policy under it
-    fails at once, in one line naming the env, the condition and the robots."""
+    """The InEKF serves 3-bar prisms only: evaluating a SUPERball policy under it fails
+    at once, in one line naming the env, the condition and the structure it needs."""
     from agents.evaluation.evaluate import evaluate_policies
 
     policy = random_policy("tensegrity_gym/SuperBallRoll-v0", seed=0)
     message = (
-        r"^tensegrity_gym/SuperBallRoll-v0: condition 'inekf': estimator 'inekf' supports "
-        r"the robots \['three_bar', 'three_bar_large'\], not 'superball'$"
+        r"^tensegrity_gym/SuperBallRoll-v0: condition 'inekf': estimator 'inekf' cannot "
+        r"serve robot 'superball': it needs a 3-bar prism \(three rods\); this robot has 6 "
+        r"rods$"
     )
     with pytest.raises(ValueError, match=message):
         evaluate_policies([policy], [condition("oracle"), condition("inekf")], episodes=1)
@@ -190,3 +191,20 @@ def test_the_simulator_says_exactly_the_kinds_it_produces() -> None:
     names = {cls: name for name, cls in SAMPLE_KINDS.items()}
     produced = {names[type(s)] for s in samples}
     assert backend.sample_kinds() == produced | {GROUND_TRUTH}
+
+
+def test_estimators_declare_what_robot_structure_they_serve() -> None:
+    """The ICP tracker and the InEKF are refused on SUPERball by structure, each naming
+    why in one line; the 3-bar robots of any name pass."""
+    from tensegrity_gym.model.description import load_robot
+
+    superball, three_bar = load_robot("superball"), load_robot("three_bar")
+    assert estimator_spec("icp").missing(None, superball) == (
+        "estimator 'icp' cannot serve robot 'superball': the RGB-D tracker follows the three "
+        "rods of a 3-bar prism; this robot has 6 rods, on which it loses track"
+    )
+    with pytest.raises(ValueError, match=r"^make: estimator 'inekf' cannot serve robot 'superb"):
+        gym.make("tensegrity_gym/SuperBallRoll-v0", estimator="inekf")
+    for name in ("icp", "inekf", "ukf"):
+        assert estimator_spec(name).missing(None, three_bar) is None
+        assert estimator_spec(name).missing(None, "superball") is None  # a name alone
