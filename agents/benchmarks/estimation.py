@@ -26,6 +26,7 @@ import numpy as np
 from agents.recordings.runs import RecordedRun, record_run, replay, trajectory_errors
 from estimation.ukf import UkfConfig, UkfEstimator
 from estimation.ukf.filter import single_threaded_blas
+from tensegrity_gym.model.description import DEFAULT_GAIT
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
@@ -58,24 +59,24 @@ VARIANTS: dict[str, UkfConfig] = {
 """The settings of Caluwaerts et al. 2016 fig. 7-8."""
 
 
-def _gait_policy() -> Any:
+def _gait_policy(name: str = DEFAULT_GAIT) -> Any:
     gait: FaceGait | None = None
 
     def policy(env: TensegrityEnv, obs: NDArray[np.float32], step: int) -> NDArray[np.float32]:
         nonlocal gait
         if gait is None:
-            gait = FaceGait(env.backend.description, env.task)
+            gait = FaceGait(env.backend.description, env.task, gait=name)
         return gait(obs)
 
     return policy
 
 
 def record_face_transition(
-    env_id: str, seed: int, steps: int = 200, **make_kwargs: Any
+    env_id: str, seed: int, steps: int = 200, gait: str = DEFAULT_GAIT, **make_kwargs: Any
 ) -> RecordedRun:
-    """The robot rolls face to face under its scripted gait (``make_kwargs``: more
-    arguments of ``gym.make``)."""
-    return record_run(env_id, _gait_policy(), steps, seed, **make_kwargs)
+    """The robot rolls face to face under its scripted gait ``gait`` (``make_kwargs``:
+    more arguments of ``gym.make``, and ``record_run``'s ``camera``)."""
+    return record_run(env_id, _gait_policy(gait), steps, seed, **make_kwargs)
 
 
 def record_stationary_actuation(

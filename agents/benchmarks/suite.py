@@ -102,6 +102,7 @@ def run_benchmarks(
     ray_address: str | None = None,
     engines: bool = False,
     engine: str | None = None,
+    cross_world: bool = False,
 ) -> dict[str, Any]:
     """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.benchmarks.bags`) and
     the robot link against the emulator (:mod:`agents.benchmarks.link`, ``link_steps`` 10 Hz
@@ -111,8 +112,10 @@ def run_benchmarks(
     (:mod:`agents.benchmarks.sim2real`); with ``ray_address``, the Ray vec env against
     ``SubprocVecEnv`` and the sizing model's costs (:mod:`agents.benchmarks.ray_cluster`), and the
     estimation study's replays as Ray tasks on that cluster; with ``engines``, the physics
-    engines side by side (:mod:`agents.benchmarks.engines`). ``engine`` runs the env
-    speed and memory figures on that physics engine (None: the default)."""
+    engines side by side (:mod:`agents.benchmarks.engines`); with ``cross_world``, every
+    estimator on worlds it was not tuned in (:mod:`agents.benchmarks.cross_world`).
+    ``engine`` runs the env speed and memory figures on that physics engine (None: the
+    default)."""
     with executor(ray_address) as jobs:
         results = _run(speed_steps, memory_steps, estimation, bag_minutes, link_steps,
                        soak_minutes, sim2real, jobs, engine)  # fmt: skip
@@ -121,6 +124,10 @@ def run_benchmarks(
 
             results["engines"] = bench_engines(steps=max(speed_steps // 5, 100))
             results["engines"]["vector"] = bench_vector(steps=max(speed_steps // 25, 30))
+        if cross_world:
+            from agents.benchmarks.cross_world import bench_cross_world
+
+            results["cross_world"] = bench_cross_world()
         if not jobs.local:
             from agents.benchmarks.ray_cluster import bench_ray
 

@@ -68,6 +68,13 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
         help="also compare the physics engines: MuJoCo's env against its bare mj_step and "
         "against PyBullet's, with the oracle and the UKF (needs tensegrity-gym[mujoco])",
     )
+    bench.add_argument(
+        "--cross-world",
+        action="store_true",
+        help="also score every estimator on worlds it was not tuned in: the other physics "
+        "engine and description error, 3 seeds, rolling and turning (needs "
+        "tensegrity-gym[mujoco])",
+    )
     add_engine(bench)
     add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
@@ -88,6 +95,7 @@ def run_bench(args: argparse.Namespace) -> int:
         ray_address=args.ray,
         engines=args.engines,
         engine=args.engine,
+        cross_world=args.cross_world,
     )
     text = json.dumps(results, indent=2)
     if args.out:
