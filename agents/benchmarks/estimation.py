@@ -200,7 +200,7 @@ def _member_forces_np(
     smooth: float,
 ) -> NDArray[np.float64]:
     """What every member pulls on its first node, (S, M, 3) (N), for positions and
-    velocities ``x``, ``v`` (S, n, 3) and rest lengths ``rest`` (M,) (m)."""
+    velocities ``x``, ``v`` (S, n, 3) and rest lengths ``rest`` (1 or S, M) (m)."""
     i, j, cable = members[:, 0], members[:, 1], members[:, 2] != 0
     stiffness, damping = member_params[:, 0], member_params[:, 1]
     u = x[:, j] - x[:, i]
@@ -320,7 +320,8 @@ def propagate_numpy(
     would be.
 
     Advances ``states`` (S, 6 n) in place by ``n_steps`` substeps of ``h`` seconds,
-    ``rest`` (2, M) the members' rest lengths (m) at the start and end.
+    ``rest`` (R, 2, M) the members' rest lengths (m) at the start and end, of every
+    state (R = 1) or of each (R = S).
     """
     S, n = states.shape[0], arrays.nodes.shape[0]
     x = states[:, : 3 * n].reshape(S, n, 3)
@@ -329,7 +330,7 @@ def propagate_numpy(
     inv_mass, ground_height = arrays.nodes[:, 0], arrays.nodes[:, 1]
     gravity, ground_k, ground_c, mu, slip, smooth, _, _ = arrays.constants
     for step in range(n_steps):
-        rest_now = rest[0] + (step + 0.5) / n_steps * (rest[1] - rest[0])
+        rest_now = rest[:, 0] + (step + 0.5) / n_steps * (rest[:, 1] - rest[:, 0])
         pull = _member_forces_np(x, v, rest_now, arrays.members, arrays.member_params, smooth)
         force = np.zeros_like(x)
         by_node = force.transpose(1, 0, 2)  # a view, (n, S, 3): np.add.at on the node axis

@@ -73,6 +73,16 @@ class UkfConfig:
     are taken as one, not estimated."""
     alignment_noise: float = 0.001
     """Random walk of that rotation, rad per sqrt(s): a constant, allowed to settle."""
+    rest_length_error_sigma: float | None = 0.02
+    """Prior std (m) of each actuated cable's rest length against what its encoder
+    reads (the encoder's zero set by hand, the cable attached off its place), which the
+    filter estimates with the nodes (estimation/ukf/state.py). None: the encoders are
+    taken as exact."""
+    rod_length_error_sigma: float | None = 0.01
+    """Prior std (m) of each rod's length (its endcaps' distance) against the
+    description's, estimated likewise. None: the description's lengths are exact."""
+    description_noise: float = 1e-4
+    """Random walk of those length errors, m per sqrt(s): constants, allowed to settle."""
     range_sigma: float = 0.03
     """Std of a UWB range (m)."""
     cable_sigma: float = 0.03
@@ -143,7 +153,7 @@ class UkfConfig:
             "cable_sigma",
             "rod_length_sigma", "contact_sigma", "initial_position_sigma", "initial_shape_sigma",
             "initial_velocity_sigma", "range_window", "divergence_nis", "contact_noise_scale",
-            "contact_band", "alignment_noise",
+            "contact_band", "alignment_noise", "description_noise",
             "divergence_rod_strain", "stream_failure_window", "max_prediction_time",
         )  # fmt: skip
         for name in positive:
@@ -161,9 +171,10 @@ class UkfConfig:
         body = self.body_position_noise
         if not (np.isfinite(body) and body >= 0):
             raise ValueError(f"UkfConfig.body_position_noise must be non-negative, got {body}")
-        align = self.alignment_sigma
-        if align is not None and not (np.isfinite(align) and align > 0):
-            raise ValueError(f"UkfConfig.alignment_sigma must be positive or None, got {align}")
+        for name in ("alignment_sigma", "rest_length_error_sigma", "rod_length_error_sigma"):
+            value = getattr(self, name)
+            if value is not None and not (np.isfinite(value) and value > 0):
+                raise ValueError(f"UkfConfig.{name} must be positive or None, got {value}")
         if self.divergence_window < 1 or self.lockout_updates < 1:
             raise ValueError("UkfConfig.divergence_window and lockout_updates must be at least 1")
         if not 0 < self.divergence_anchor_reject_share < 1:

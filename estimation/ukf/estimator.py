@@ -6,7 +6,9 @@ encoders' rest lengths as its input, then corrects it with what arrived: rod axe
 the AHRS, UWB ranges minus the pair offsets, cable lengths, and the rod-length and
 ground-contact pseudo-measurements. Its state is the node positions and velocities
 (6 n,), then (with the AHRS in use) the rotation vector (3,) from the AHRS's frame to
-the world's, which a sloping floor or anchors surveyed off level make other than zero.
+the world's, which a sloping floor or anchors surveyed off level make other than zero,
+then the description's error: each actuated cable's rest length against its encoder,
+each rod's length (:class:`~estimation.ukf.state.StateLayout`).
 Before anything is kept, readings that are physically implausible are dropped and
 counted (:mod:`estimation.screen`), and a stream that gives nothing plausible for
 ``stream_failure_window`` is failed and not used until it has been plausible as long.
@@ -42,6 +44,7 @@ from estimation.ukf.process_noise import ProcessNoise
 from estimation.ukf.readings import Readings, select_ranges
 from estimation.ukf.sigma_points import CholeskyError
 from estimation.ukf.spring_mass import SpringMassModel
+from estimation.ukf.state import StateLayout
 from estimation.ukf.watchdog import JUMPED, FilterWatchdog, Lockout
 from tensegrity_gym.model.estimate import Estimate
 from tensegrity_gym.model.kinematics import center_of_mass
@@ -264,9 +267,12 @@ class UkfEstimator:
         self.description = d
         self.model = SpringMassModel(d, c.model)
         anchors, self.offsets, self._module_allowed = _ranging(c, d, calibration)
-        alignment = 6 * d.n_nodes if c.estimates_alignment else None
-        self.measurements = MeasurementModel(d, anchors, d.sensors.uwb.module_offset, alignment)
-        self.process_noise = ProcessNoise(c, d)
+        self.layout = layout = StateLayout.of(c, d)
+        self.measurements = MeasurementModel(
+            d, anchors, d.sensors.uwb.module_offset, layout.alignment,
+            layout.rod_offsets(d.n_cables),
+        )  # fmt: skip
+        self.process_noise = ProcessNoise(c, d, layout.n_offsets)
         rest = np.asarray(command, dtype=np.float64).copy()
         self.readings = self._readings(d, calibration, samples, rest)
         self.health = EstimatorHealth(c.health, self.readings.screen)
@@ -315,10 +321,10 @@ class UkfEstimator:
         """Start over from ``nodes`` (n, 3), m, fitted to the samples just now."""
         if self._failed_fits > 1:
             log.info("UKF re-initialised after %d failed attempts", self._failed_fits)
-        alignment = self._kept_alignment()
+        kept = self._kept_calibration()
         self._failed_fits = 0
         self._unplaced = False
-        self._start(nodes, alignment)
+        self._start(nodes, kept)
         self.health.reinitialised(placed=True)
         return self._estimate()
 
@@ -330,7 +336,7 @@ class UkfEstimator:
             for_fit=True,
         )  # fmt: skip
         # The AHRS's axes turned into the world's by the alignment the filter keeps.
-        turn = so3_exp(self._kept_alignment())
+        turn = so3_exp(self._kept_calibration()[:3])
         return fit_initial_shape(
             self.description,
             self.measurements,
@@ -344,48 +350,60 @@ class UkfEstimator:
             contact_nodes=r.latest_contacts if c.use_contacts else None,
         ).node_positions
 
-    def _start(
-        self, nodes: NDArray[np.float64], alignment: NDArray[np.float64] | None = None
-    ) -> None:
-        """Start the filter at ``nodes`` (n, 3), m, at rest, and at ``alignment`` (3,),
-        rad (a re-initialisation: the floor has not moved; None: zero), uncertain by
-        its prior."""
-        c = self.config
+    def _start(self, nodes: NDArray[np.float64], kept: NDArray[np.float64] | None = None) -> None:
+        """Start the filter at ``nodes`` (n, 3), m, at rest, uncertain by its prior, with
+        the calibration ``kept`` (the alignment (3,), rad, then the description's
+        errors, m: :meth:`_kept_calibration`; a re-initialisation: the floor and the
+        robot have not changed; None: zero)."""
+        c, layout = self.config, self.layout
         n = self.description.n_nodes
         L = self.description.characteristic_length
-        dim = 6 * n + 3 if c.estimates_alignment else 6 * n
-        x = np.zeros(dim)
+        x = np.zeros(layout.dim)
         x[: 3 * n] = nodes.ravel()
         # Where the robot is is uncertain, its shape much less so: independent errors
         # of centimetres would stretch the stiff rods, or sink the nodes into the
         # ground, of every sigma point and fling them apart in the first predict.
-        P = np.zeros((dim, dim))
+        P = np.zeros((layout.dim, layout.dim))
         # The ground fixes the height: the robot as a whole is uncertain horizontally.
         P[: 3 * n, : 3 * n] = (c.initial_position_sigma * L) ** 2 * np.kron(
             np.ones((n, n)), np.diag([1.0, 1.0, 0.0])
         ) + (c.initial_shape_sigma * L) ** 2 * np.eye(3 * n)
         P[3 * n : 6 * n, 3 * n : 6 * n] = (c.initial_velocity_sigma * L) ** 2 * np.eye(3 * n)
-        if c.alignment_sigma is not None and dim > 6 * n:
-            P[6 * n :, 6 * n :] = c.alignment_sigma**2 * np.eye(3)
-            if alignment is not None:
-                x[6 * n :] = alignment
+        if layout.alignment is not None and c.alignment_sigma is not None:
+            a = layout.alignment
+            P[a : a + 3, a : a + 3] = c.alignment_sigma**2 * np.eye(3)
+        if layout.offsets is not None:
+            o = layout.offsets
+            P[o:, o:] = np.diag(layout.prior_sigma**2)
+        if kept is not None:
+            x[6 * n :] = kept
         self._initial_P = P
         self.filter = UnscentedKalmanFilter(x, P.copy(), c.sigma_points)
         self.watchdog = FilterWatchdog(c, self.description, self.measurements.rod_lengths)
 
-    def _kept_alignment(self) -> NDArray[np.float64]:
-        """(3,) rad: the alignment a re-initialisation starts from: the filter's, unless
-        there is none yet (a reset), the robot was never placed (the template shape's
-        orientation, not the floor's, would be in it) or it went beyond reach of its
-        prior (5 ``alignment_sigma``: a diverged state's), in which case zero."""
-        c = self.config
-        if not (self._ready and c.estimates_alignment) or self._unplaced:
-            return np.zeros(3)
-        phi = self.filter.x[6 * self.description.n_nodes :]
-        reach = 5.0 * (c.alignment_sigma or 0.0)
-        if not (np.all(np.isfinite(phi)) and float(np.linalg.norm(phi)) <= reach):
-            return np.zeros(3)
-        return np.array(phi)
+    def _kept_calibration(self) -> NDArray[np.float64]:
+        """The alignment (3,), rad, and the description's errors (k,), m, a
+        re-initialisation starts from: the filter's, unless there are none yet (a
+        reset) or the robot was never placed (the template shape's orientation, not the
+        floor's, would be in the alignment), in which case zero; each part also zero
+        where it went beyond reach of its prior (5 sigma: a diverged state's)."""
+        layout = self.layout
+        n6 = 6 * self.description.n_nodes
+        kept = np.zeros(layout.dim - n6)
+        if not self._ready or self._unplaced:
+            return kept
+        x = self.filter.x[n6:]
+        if layout.alignment is not None:
+            phi = x[:3]
+            reach = 5.0 * (self.config.alignment_sigma or 0.0)
+            if np.all(np.isfinite(phi)) and float(np.linalg.norm(phi)) <= reach:
+                kept[:3] = phi
+        if layout.offsets is not None:
+            o = layout.offsets - n6
+            errors = x[o:]
+            fine = np.isfinite(errors) & (np.abs(errors) <= 5.0 * layout.prior_sigma)
+            kept[o:] = np.where(fine, errors, 0.0)
+        return kept
 
     @property
     def ahrs_alignment(self) -> NDArray[np.float64]:
@@ -393,9 +411,22 @@ class UkfEstimator:
         (``UkfConfig.alignment_sigma``); zeros where it is not estimated."""
         if not self._ready:
             raise RuntimeError("call reset() before reading ahrs_alignment")
-        x = self.filter.x
-        n6 = 6 * self.description.n_nodes
-        return x[n6:].copy() if len(x) > n6 else np.zeros(3)
+        a = self.layout.alignment
+        return self.filter.x[a : a + 3].copy() if a is not None else np.zeros(3)
+
+    @property
+    def description_errors(self) -> dict[str, NDArray[np.float64]]:
+        """The description's errors as estimated, m: ``"rest_lengths"`` (m,) what each
+        actuated cable's rest length adds to its encoder's reading, ``"rod_lengths"``
+        (r,) what each rod's length adds to the description's; zeros where the filter
+        does not estimate them (``UkfConfig.rest_length_error_sigma``,
+        ``rod_length_error_sigma``)."""
+        if not self._ready:
+            raise RuntimeError("call reset() before reading description_errors")
+        d, layout = self.description, self.layout
+        offsets = layout.member_offsets(self.filter.x, d.n_cables + d.n_rods)
+        member = np.zeros(d.n_cables + d.n_rods) if offsets is None else offsets[0]
+        return {"rest_lengths": member[d.actuated], "rod_lengths": member[d.n_cables :]}
 
     # ------------------------------------------------------------------ filtering
 
@@ -472,12 +503,16 @@ class UkfEstimator:
         self, states: NDArray[np.float64], step: FilterStep, kernel: Kernel | None = None
     ) -> NDArray[np.float64]:
         """``states`` (S, d) or (d,) after the step's duration (a new array): the nodes by
-        the spring-mass model (``kernel``: another implementation of it), the AHRS
-        frame's alignment held."""
+        the spring-mass model (``kernel``: another implementation of it), with each
+        state's own rest lengths where it carries the description's errors; those and
+        the AHRS frame's alignment held."""
         k = self.model.state_dim
+        d = self.description
+        offsets = self.layout.member_offsets(states, d.n_cables + d.n_rods)
         nodes = self.model.propagate(
-            states[..., :k], step.duration, step.rest_start, step.rest_end, kernel=kernel
-        )  # a new array
+            states[..., :k], step.duration, step.rest_start, step.rest_end,
+            offsets=offsets, kernel=kernel,
+        )  # fmt: skip
         if states.shape[-1] == k:
             return nodes
         return np.concatenate([nodes, states[..., k:]], axis=-1)
@@ -539,7 +574,7 @@ class UkfEstimator:
                 nodes = self.description.initial_positions
             else:
                 nodes = x[: 3 * self.description.n_nodes].reshape(-1, 3)
-            self._start(nodes, self._kept_alignment())
+            self._start(nodes, self._kept_calibration())
             self.health.reinitialised(placed=False)
             return self._estimate()
         return self._placed(nodes)

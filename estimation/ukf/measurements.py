@@ -9,7 +9,8 @@ Five kinds of row, each a function of the node positions alone:
   (Caluwaerts et al. 2016 eq. 6-7); a robot module sits ``module_offset`` from its endcap toward
   the rod centre, an anchor at its surveyed position;
 - cable length: an on-board stretch sensor's endcap-to-endcap distance;
-- rod length: a pseudo-measurement that the rod keeps its length;
+- rod length: a pseudo-measurement that the rod keeps its length (the description's,
+  plus its error where the state carries it);
 - contact height: a pseudo-measurement that an endcap in contact rests on the ground.
 
 The vector changes size with every update: dropped packets are simply absent.
@@ -81,6 +82,8 @@ class MeasurementModel:
         module_offset: how far a robot's UWB module sits from its endcap (m).
         alignment: where the state's rotation vector (3,) from the AHRS's frame to the
             world's starts; None: the two frames are one.
+        rod_offsets: (r,) where the state's error of each rod's length (m) lies, by rod;
+            None: the description's lengths are exact.
     """
 
     def __init__(
@@ -89,9 +92,11 @@ class MeasurementModel:
         anchors: NDArray[np.float64],
         module_offset: float,
         alignment: int | None = None,
+        rod_offsets: NDArray[np.intp] | None = None,
     ) -> None:
         d = description
         self.alignment = alignment
+        self.rod_offsets = rod_offsets
         self.n_nodes = d.n_nodes
         self.rod_nodes = d.rod_nodes
         self.cable_nodes = d.cable_nodes
@@ -141,7 +146,10 @@ class MeasurementModel:
         if batch.rods.size:
             rn = self.rod_nodes[batch.rods]
             diff = nodes[:, rn[:, 1]] - nodes[:, rn[:, 0]]
-            parts.append(np.sqrt(np.einsum("sri,sri->sr", diff, diff)))
+            length = np.sqrt(np.einsum("sri,sri->sr", diff, diff))
+            if self.rod_offsets is not None:  # the rod as built: its error taken off
+                length = length - states[:, self.rod_offsets[batch.rods]]
+            parts.append(length)
         if batch.contact_nodes.size:
             parts.append(nodes[:, batch.contact_nodes, 2])
         if not parts:

@@ -49,9 +49,13 @@ class ProcessNoise:
         config: the filter's noise settings (position and velocity noise, resting and
             driven; node and contact factors; the contact band; the hold time).
         description: the robot (rod length for the scale, node count, endcap radii).
+        n_offsets: how many of the description's lengths the state carries (their
+            random walk is ``description_noise``).
     """
 
-    def __init__(self, config: UkfConfig, description: RobotDescription) -> None:
+    def __init__(
+        self, config: UkfConfig, description: RobotDescription, n_offsets: int = 0
+    ) -> None:
         c = config
         L = description.characteristic_length
         self.resting = np.array([c.position_noise * L, c.velocity_noise * L]) ** 2
@@ -65,6 +69,8 @@ class ProcessNoise:
         self.alignment = c.alignment_noise**2 if c.estimates_alignment else 0.0
         """Variance rate (rad^2/s) of each component of the AHRS frame's alignment;
         0 where the state does not carry it."""
+        self.offsets = np.full(n_offsets, c.description_noise**2)
+        """(k,) variance rates (m^2/s) of the description's lengths the state carries."""
         self.driven_speed = c.driven_speed
         self.driven_hold = c.driven_hold
         self.node_scale = _node_noise_scale(c, description)
@@ -83,7 +89,8 @@ class ProcessNoise:
         """Q over a step of ``dt`` seconds in which the actuated rest lengths (m,) (m)
         went from ``rest_before`` to ``rest_after``, the nodes at estimated ``heights``
         (n,) (m): its diagonal (6 n,), positions then velocities (then the alignment's
-        3 where the state carries it), where no noise is shared between nodes; else the
+        3 and the description's lengths where the state carries them), where no noise
+        is shared between nodes; else the
         whole matrix, with the ``body_position_noise`` that moves every node alike while
         the robot is driven."""
         moved = float(np.max(np.abs(rest_after - rest_before), initial=0.0))
@@ -100,6 +107,8 @@ class ProcessNoise:
         q = np.concatenate([rates[0] * per_axis, rates[1] * per_axis])
         if self.alignment:
             q = np.concatenate([q, np.full(3, self.alignment * dt)])
+        if len(self.offsets):
+            q = np.concatenate([q, self.offsets * dt])
         if not driven or not self.body.any():
             return q
         Q = np.diag(q)

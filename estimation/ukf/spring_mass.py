@@ -128,8 +128,9 @@ class Kernel(Protocol):
             states: (S, 6 n), positions then velocities of each state.
             n_steps: substeps.
             h: the length of each substep (s).
-            rest: (2, M), every member's rest length (m) at the start and at the end of
-                the interval, interpolated linearly at the middle of each substep.
+            rest: (R, 2, M), every member's rest length (m) at the start and at the end
+                of the interval, interpolated linearly at the middle of each substep;
+                R = 1 (every state alike) or S (each state its own).
             arrays: the model's parameters.
         """
 
@@ -258,6 +259,7 @@ class SpringMassModel:
         rest_start: NDArray[np.float64],
         rest_end: NDArray[np.float64] | None = None,
         *,
+        offsets: NDArray[np.float64] | None = None,
         kernel: Kernel | None = None,
     ) -> NDArray[np.float64]:
         """Advance a batch of states by ``duration`` seconds.
@@ -268,6 +270,8 @@ class SpringMassModel:
             rest_start, rest_end: actuated cable rest lengths (m), (m,), at the start
                 and end of the interval; linearly interpolated in between (the motors
                 slew). ``rest_end`` None holds ``rest_start``.
+            offsets: (S, M) or (M,), m added to each member's rest length, per state
+                (the description's error as the filter estimates it); None: none.
             kernel: another implementation of the same equations to run instead (the
                 benchmark's plain numpy one).
 
@@ -282,6 +286,11 @@ class SpringMassModel:
         rest = self._base_rest_interval.copy()  # one copy: filterpy calls this per point
         rest[0][self.actuated_members] = rest_start
         rest[1][self.actuated_members] = rest_start if rest_end is None else rest_end
+        if offsets is None:
+            rest = rest[None]
+        else:
+            shift = np.asarray(offsets, dtype=np.float64).reshape(-1, 1, rest.shape[-1])
+            rest = np.ascontiguousarray(rest[None] + shift)
         n = self.n_substeps(duration)
         if kernel is not None:
             kernel(batch, n, duration / n, rest, self.arrays)
@@ -613,7 +622,8 @@ def _propagate(
     pairs: NDArray[np.int64],
     pair_params: NDArray[np.float64],
 ) -> None:
-    """Semi-implicit Euler on each state of ``states`` (S, 6 n), in place: a
+    """Semi-implicit Euler on each state of ``states`` (S, 6 n), in place, with the rest
+    lengths ``rest`` (R, 2, M) of every state (R = 1) or of each (R = S): a
     :class:`Kernel` compiled, taking the fields of ``arrays`` one by one.
 
     Every switch of the hybrid dynamics (a cable going slack, a node touching the
@@ -626,14 +636,16 @@ def _propagate(
     contact_k = constants[_CONTACT_K]
     contact_c = constants[_CONTACT_C]
     force = np.empty((n, 3))
+    shared = rest.shape[0] == 1
     for s in range(states.shape[0]):
         x = states[s, : 3 * n].reshape(n, 3)
         v = states[s, 3 * n :].reshape(n, 3)
+        own = rest[0] if shared else rest[s]
         for step in range(n_steps):
             force[:, :] = 0.0
             # Rest lengths at the middle of the substep: the motors slew linearly.
             frac = (step + 0.5) / n_steps
-            _member_forces(x, v, force, members, member_params, rest, frac, smooth)
+            _member_forces(x, v, force, members, member_params, own, frac, smooth)
             # The rod pairs here, not in a helper of their own: with that one inlined
             # too, the kernel ran some 7 % slower.
             for k in range(pairs.shape[0]):

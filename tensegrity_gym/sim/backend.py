@@ -483,7 +483,7 @@ class SimBackend:
         check_open(self._closed, "reset")
         pose = _check_spawn(spawn)
         self._rng = rng
-        d = self._draw_world(rng)  # the robot as built: the description unless randomised
+        d = self._as_built(self._draw_world(rng))  # the description unless randomised
         positions, quats = settled_pose(d, self.time_step, self.settle_time, self.engine)
         world = self.world
         # Flat ground draws nothing from the rng: episodes stay as they were without it.
@@ -494,9 +494,7 @@ class SimBackend:
         world._build()
         world.time_ns = 0
         self._truth = None
-        rest = d.rest_lengths.copy()
-        rest[d.actuated] += self._offsets  # the cables the encoders' zeros leave
-        world.set_rest_lengths(rest)
+        world.set_rest_lengths(d.rest_lengths)
         self._previous_targets = list(world.targets)  # held until the first command acts
         shift, yaw = self._spawn_pose(rng, pose)
         qz = _yaw_quaternion(yaw)
@@ -608,6 +606,21 @@ class SimBackend:
         self.encoder.offsets = self._offsets
         self._latency_steps = min(round(draw.command_latency / self.time_step), self._n_steps)
         return robot
+
+    def _as_built(self, robot: RobotDescription) -> RobotDescription:
+        """``robot`` with its actuated cables as long as the motors hold them at reset:
+        the encoders read the description's rest lengths, the cables are longer by the
+        encoders' zero errors (within the motors' own range). The robot settles so: a
+        pose settled with other lengths would snap into shape at the first step."""
+        if not self._offsets.any():
+            return robot
+        lo, hi, _ = robot.motor_limits
+        rest = robot.rest_lengths[robot.actuated] + self._offsets
+        held = dict(zip(robot.actuated.tolist(), np.clip(rest, lo, hi).tolist(), strict=True))
+        cables = tuple(
+            replace(c, rest_length=held[k]) if k in held else c for k, c in enumerate(robot.cables)
+        )
+        return replace(robot, cables=cables)
 
     def _rest_on(
         self, terrain: Terrain, positions: NDArray[np.float64], quaternions: NDArray[np.float64]

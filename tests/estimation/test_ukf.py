@@ -1038,18 +1038,23 @@ def test_a_huge_error_is_recovered_from(rolling: Recording, fault: Any) -> None:
 
 
 def test_a_reinitialisation_keeps_the_ahrs_frames_alignment(rolling: Recording) -> None:
-    """The floor does not move when the filter starts over: a re-initialisation starts
-    from the alignment it had (uncertain by its prior again), but not from one beyond 5
-    ``alignment_sigma`` (a diverged state's); a reset starts from zero."""
+    """The floor does not move when the filter starts over, nor does the robot change:
+    a re-initialisation starts from the alignment and the description's errors it had
+    (uncertain by their priors again), but not from ones beyond 5 sigma (a diverged
+    state's); a reset starts from zero."""
     with pytest.raises(RuntimeError, match="call reset"):
         _ = UkfEstimator().ahrs_alignment
     rec, k = rolling, 12
     n = rec.description.n_nodes
-    sigma = UkfConfig().alignment_sigma
-    assert sigma is not None
+    config = UkfConfig()
+    sigma, rest_sigma = config.alignment_sigma, config.rest_length_error_sigma
+    assert sigma is not None and rest_sigma is not None
+    a = slice(6 * n, 6 * n + 3)
     for phi, kept in ((np.array([0.02, -0.01, 0.03]), True), (np.array([0.3, 0.0, 0.0]), False)):
         est = _rolling_estimator(rec, k)
-        est.filter.x[6 * n :] = phi
+        est.filter.x[a] = phi
+        rest = slice(6 * n + 3, 6 * n + 3 + rec.description.n_actuated)
+        est.filter.x[rest] = 0.01 if kept else 0.2  # within 5 sigma, and far beyond
         _jump(est)
         for step in rec.steps[k : k + 7]:
             if est.update(step.samples, step.command).reinitialised:
@@ -1057,14 +1062,19 @@ def test_a_reinitialisation_keeps_the_ahrs_frames_alignment(rolling: Recording) 
         else:
             pytest.fail("never re-initialised")
         alignment = est.ahrs_alignment
-        if kept:  # the update before the re-initialisation moved it a little
+        errors = est.description_errors["rest_lengths"]
+        if kept:  # the update before the re-initialisation moved them a little
             np.testing.assert_allclose(alignment, phi, atol=0.01)
+            np.testing.assert_allclose(errors, 0.01, atol=0.005)
         else:
             np.testing.assert_array_equal(alignment, 0.0)
-        np.testing.assert_array_equal(est.filter.P[6 * n :, 6 * n :], sigma**2 * np.eye(3))
+            np.testing.assert_array_equal(errors, 0.0)
+        np.testing.assert_array_equal(est.filter.P[a, a], sigma**2 * np.eye(3))
+        np.testing.assert_array_equal(est.filter.P[rest, rest], rest_sigma**2 * np.eye(6))
     est.filter.x[6 * n :] = 0.05
     est.reset(rec.description, rec.calibration, rec.start, rec.command, np.random.default_rng(0))
     np.testing.assert_array_equal(est.ahrs_alignment, 0.0)
+    np.testing.assert_array_equal(est.description_errors["rod_lengths"], 0.0)
 
 
 @pytest.mark.parametrize("fault", [_jump, _runaway])

@@ -345,3 +345,20 @@ def test_a_reset_rests_until_the_estimator_can_start() -> None:
         obs, info = env.reset(seed=seed)
         assert np.all(np.isfinite(obs)) and info["estimator_healthy"]
     env.close()
+
+
+def test_a_robot_whose_encoders_are_zeroed_off_rests_at_reset() -> None:
+    """Cables 1.5 cm shorter than their encoders read: the robot settles at those
+    lengths before the episode starts, so that holding the description's rest lengths
+    moves it by millimetres (measured 1.7 mm; a pose settled with other lengths snapped
+    into shape at the first step, throwing the 3-bar 36 cm)."""
+    env = _env(Randomization(encoder_zero=(-0.015, -0.015)))
+    env.reset(seed=0)
+    backend = env.unwrapped.backend  # type: ignore[attr-defined]
+    before = backend.ground_truth().node_positions
+    rest = D.rest_lengths[D.actuated]
+    np.testing.assert_allclose(backend.ground_truth().rest_lengths[D.actuated], rest - 0.015)
+    env.step(env.unwrapped.targets_to_action(rest))  # type: ignore[attr-defined]
+    moved = np.linalg.norm(backend.ground_truth().node_positions - before, axis=1)
+    assert moved.max() < 0.005, moved
+    env.close()
