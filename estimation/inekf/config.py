@@ -147,6 +147,12 @@ class InekfConfig:
     gyro's mean over the first rest after reset is its bias."""
     max_speed: float = 20.0
     """m/s: an estimated speed beyond this is a divergence (the filter restarts)."""
+    ground_reach: float = 0.5
+    """Rod lengths (the base rod's): the endcaps in contact (else the lowest endcap)
+    estimated further above or below the floor the filter started on (z = 0, less
+    their radii) is a divergence: a robot rolling on the ground cannot float or sink.
+    Twice the deepest of the terrain presets' troughs (the valley's, a quarter of a rod
+    length): the filter knows no map."""
     max_refused_time: float = 0.5
     """s: the gate refusing every contact correction for longer is a divergence (the
     filter restarts): one that has drifted off would otherwise refuse them ever after."""
@@ -187,7 +193,7 @@ class InekfConfig:
             "shape_rate", "initial_rotation_std",
             "initial_yaw_std", "initial_position_std", "initial_velocity_std",
             "initial_gyro_bias_std", "initial_accel_bias_std", "rest_gyro", "max_speed",
-            "max_refused_time",
+            "max_refused_time", "ground_reach",
         ):  # fmt: skip
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):

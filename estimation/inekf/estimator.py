@@ -149,6 +149,7 @@ class InekfEstimator:
         self._gyro_clip = CLIPPED * self._gyro_full_scale
         self._base_nodes = frozenset(int(n) for n in d.rod_nodes[c.base_rod])
         self._base_endcap_radius = float(d.rods[c.base_rod].endcap_radius)
+        self._ground_reach = c.ground_reach * float(d.rods[c.base_rod].length)
         self._cov_touch = np.eye(3) * c.contact_std**2
         # (k, 3, 3) forward-kinematics covariances for k contacts, made once
         self._cov_kinematics = [np.repeat(np.eye(3)[None] * c.kinematics_std**2, k, axis=0)
@@ -451,6 +452,8 @@ class InekfEstimator:
             reason = "not finite"
         elif math.hypot(*f.velocity.tolist()) > self.config.max_speed:
             reason = "too fast"
+        elif abs(self._height_off_ground()) > self._ground_reach:
+            reason = "off the ground"
         elif (
             self._refused_since_ns is not None
             and self._t_ns - self._refused_since_ns > seconds_to_ns(self.config.max_refused_time)
@@ -463,11 +466,24 @@ class InekfEstimator:
         self.health.diverged(reason)
         self._restart()
 
+    def _height_off_ground(self) -> float:
+        """m: how far above the floor (z = 0) the endcaps in contact sit, their radii
+        taken off, on average; without contacts, the lowest endcap; negative below."""
+        f = self.filter
+        assert f is not None
+        radii = self.description.node_radii
+        nodes = f.contact_nodes
+        if nodes:
+            return float(np.mean(f.contact_positions[:, 2] - radii[list(nodes)]))
+        heights = (self.shape @ f.rotation.T)[:, 2] + f.position[2] - radii
+        return float(heights.min())
+
     def _restart(self) -> None:
         """Start again where the estimate last was (the best guess a dead-reckoning
         estimator has), at rest, uncertain: tilted as the base rod's low-passed
         accelerometer says, heading kept (levelled from the TRIAD of its accelerometer
-        took the body x axis for north: 90 degrees off, and never found again)."""
+        took the body x axis for north: 90 degrees off, and never found again), its
+        lowest endcap on the floor (a robot does not float)."""
         f = self.filter
         assert f is not None
         last = self._last_position if np.all(np.isfinite(self._last_position)) else np.zeros(3)
@@ -475,6 +491,8 @@ class InekfEstimator:
         up = up if np.all(np.isfinite(up)) else self._accel
         R = f.rotation if np.all(np.isfinite(f.rotation)) else np.eye(3)
         R = levelled(R, up)
+        last = last.copy()
+        last[2] = initial_position(self.description, R, self.shape)[2]
         P = self._initial_covariance(R) * 100.0
         bias = f.gyro_bias if np.all(np.isfinite(f.gyro_bias)) else np.zeros(3)
         f.reset(R, np.zeros(3), last, bias, np.zeros(3), P)
