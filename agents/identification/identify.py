@@ -139,6 +139,13 @@ description's values (all cables' damping, every rod's mass, ...)."""
 
 _BOUND = {"passive_rest_length": np.log(1.2)}
 """Largest |log factor| searched, per factor; the others: a factor of 2 either way."""
+AT_BOUND_SHARE = 0.95
+"""A factor whose |log| ends beyond this share of its bound's has ended at its bound."""
+
+
+def factor_bounds(names: Sequence[str]) -> NDArray[np.float64]:
+    """(p,) the largest |log factor| the search tries for each of ``names``."""
+    return np.array([_BOUND.get(n, np.log(2.0)) for n in names])
 
 
 def apply_parameters(
@@ -595,6 +602,19 @@ class Identification:
     control_period: float
     time_step: float
 
+    @property
+    def at_bound(self) -> dict[str, tuple[float, float]]:
+        """The factors that ended at a bound of the search (|log| beyond
+        :data:`AT_BOUND_SHARE` of the bound's), each with the range searched (low, high):
+        the model could not explain the recording with that factor inside it, a sign
+        that the model, not the factor, is wrong."""
+        bounds = np.exp(factor_bounds(self.names))
+        out = {}
+        for name, f, b in zip(self.names, self.factors, bounds, strict=True):
+            if abs(np.log(f)) >= AT_BOUND_SHARE * np.log(b):
+                out[name] = (round(float(1.0 / b), 4), round(float(b), 4))
+        return out
+
 
 def identify_run(
     run: RecordedRun,
@@ -688,7 +708,7 @@ def _minimise(
     on and the evaluations made."""
     import cma
 
-    bounds = np.array([_BOUND.get(n, np.log(2.0)) for n in names])
+    bounds = factor_bounds(names)
     stages = _stages(chunks, max_evaluations)
     options = {"bounds": [list(-bounds), list(bounds)], "seed": seed + 1, "verbose": -9,
                "maxfevals": stages[-1][1], "tolfun": 1e-9, "tolx": 1e-4}  # fmt: skip

@@ -74,7 +74,21 @@ def identify_command(
 
 
 def fit_notes(result: Identification) -> list[str]:
-    """What the report should warn of: a damping fitted without the IMU's readings."""
+    """What the report should warn of: factors that ended at a bound of the search, a
+    damping fitted without the IMU's readings."""
+    notes = [
+        f"{name} ended at the bound of the search (factor {f:.3g}, searched {low:g}-{high:g}): "
+        "the model could not explain the recording with it inside that range, which points "
+        "at the model (a part of the description this fit does not move, another engine's "
+        "physics) rather than at a value; do not take it as measured"
+        for name, (low, high) in result.at_bound.items()
+        for f in [float(result.factors[result.names.index(name)])]
+    ]
+    return notes + _damping_note(result)
+
+
+def _damping_note(result: Identification) -> list[str]:
+    """The note on a damping fitted without the IMU's readings, if it was."""
     if len(result.imu_before) or "damping" not in result.names:
         return []
     why = (
@@ -132,6 +146,7 @@ def write_report(result: Identification, start: RobotDescription, folder: Path) 
         },
         "fitted_to": "IMU readings" if len(result.imu_before) else "node positions",
         "imu_windows": _imu_figures(result),
+        "at_bound": {name: list(searched) for name, searched in result.at_bound.items()},
         "notes": fit_notes(result),
     }
     (folder / "report.json").write_text(json.dumps(report, indent=2) + "\n")

@@ -253,3 +253,18 @@ def test_a_state_set_in_flight_steps_as_the_run_it_was_taken_from() -> None:
     world.close()
     kick = np.subtract(again.rod_linear_velocities, before.rod_linear_velocities)
     assert np.abs(kick).max() < 5e-4
+
+
+def test_a_factor_that_ends_at_its_bound_is_named_not_reported_as_measured() -> None:
+    """A robot whose cables are three times as stiff as its description, fitted within
+    the search's factor of two: the stiffness ends at the bound, and the result and
+    the report's notes name it with the range searched, instead of a value."""
+    names = factor_names(["stiffness"], NOMINAL)
+    run = _record(apply_parameters(NOMINAL, names, np.log([3.0, 1.0])), 10.0)
+    result = identify_run(run, ["stiffness"], description=NOMINAL, max_evaluations=48,
+                          workers=2)  # fmt: skip
+    assert result.factors[0] > 1.9
+    assert result.at_bound == {"actuated_stiffness": (0.5, 2.0)}
+    note = next(n for n in fit_notes(result) if n.startswith("actuated_stiffness"))
+    assert "ended at the bound of the search" in note and "searched 0.5-2" in note
+    assert "passive_stiffness" not in " ".join(fit_notes(result))
