@@ -20,8 +20,9 @@ from tests.reference_spring_mass import awkward_states, propagate_reference
 
 def test_filter_speed_compares_like_with_like() -> None:
     out = bench_filter_speed("tensegrity_gym/ThreeBarRoll-v0", steps=3, numpy_steps=1)
-    # 36 node states and the AHRS frame's alignment (3): 2 x 39 + 1 sigma points.
-    assert out["steps_timed"] == 3 and out["state_dim"] == 39 and out["sigma_points"] == 79
+    # 36 node states, the AHRS frame's alignment (3), the 6 actuated cables' and the 3
+    # rods' length errors: 2 x 48 + 1 sigma points.
+    assert out["steps_timed"] == 3 and out["state_dim"] == 48 and out["sigma_points"] == 97
     # Both filters ran the same steps from the same start: the same answer.
     assert out["max_state_difference_vs_filterpy_m"] < 1e-6
     assert out["fast_filter_step_ms_median"] > 0
