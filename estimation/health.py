@@ -6,7 +6,8 @@ after more than ``max_prediction_time`` without one), holds the counts of physic
 implausible readings by kind and the failed sensor streams of the estimator's
 :class:`~estimation.screen.PlausibilityScreen`, and fills the health fields of each
 :class:`~tensegrity_gym.model.estimate.Estimate` (``healthy``, ``reinitialised``,
-``rejected``, ``failed_streams``, ``description_mismatch``).
+``rejected``, ``failed_streams``, ``description_mismatch``,
+``reinitialised_because``).
 
 Time is counted in integer nanoseconds, so that a sum of periods is exact and does not
 depend on where the clock started.
@@ -84,6 +85,8 @@ class EstimatorHealth:
         """ns spanned by the last update that spanned any time."""
         self._pending: str | None = None
         self._reinitialised = False
+        self._reason: str | None = None
+        """Why this update re-initialised, where it did and the reason was asked for."""
 
     # ------------------------------------------------------------------ counts
 
@@ -142,6 +145,7 @@ class EstimatorHealth:
     def reinitialised(self, *, placed: bool) -> None:
         """The estimator re-initialised itself in this update; ``placed``: from samples
         just now (which counts as a correction), not by keeping its last state."""
+        self._reason = self._pending
         self._pending = None
         self._reinitialised = True
         if placed:
@@ -165,8 +169,10 @@ class EstimatorHealth:
             failed_streams=self.failed_streams,
             rejected=self.implausible if self.screen is not None else None,
             description_mismatch=self.mismatches,
+            reinitialised_because=self._reason if self._reinitialised else None,
         )
         self._reinitialised = False
+        self._reason = None
         return out
 
     def summary(self) -> dict[str, object]:

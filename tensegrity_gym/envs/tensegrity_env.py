@@ -43,11 +43,14 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
     reward and the end of an episode.
 
     ``info`` holds ``com_estimate`` (m, (3,)), ``progress`` (m, the task's),
-    ``estimator_healthy``, ``estimator_reinitialised``, ``estimator_failed_streams``
+    ``estimator_healthy``, ``estimator_reinitialised`` (and
+    ``estimator_reinitialised_because``, its reason or None), ``estimator_failed_streams``
     (streams the estimator stopped fusing as implausible), ``estimator_rejected``
     (implausible measurements by kind), ``estimator_description_mismatch`` (where the
     readings contradict the description, a line each; those readings are kept),
-    ``reward_rejected`` (why a step earned no reward,
+    ``estimator_heading_std_deg`` (where the estimator tracks a pose covariance: its
+    heading's std, which dead reckoning lets grow), ``reward_rejected`` (why a step
+    earned no reward,
     else None), ``sim_diverged``, ``calibration`` (where the estimators' UWB calibration
     came from: ``"estimated"``, ``"true"`` or a file) and, where the backend has ground
     truth, ``com_true`` and
@@ -144,6 +147,7 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             "progress": self.task.progress(estimate),
             "estimator_healthy": estimate.healthy,
             "estimator_reinitialised": estimate.reinitialised,
+            "estimator_reinitialised_because": estimate.reinitialised_because,
             "sim_diverged": diverged,
             "estimator_failed_streams": list(estimate.failed_streams),
             "estimator_rejected": dict(estimate.rejected or {}),
@@ -151,6 +155,9 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
             "reward_rejected": None,
             "calibration": self.calibration,
         }
+        if estimate.pose_covariance is not None:  # the heading a dead reckoner is unsure of
+            yaw = float(estimate.pose_covariance[2, 2])
+            info["estimator_heading_std_deg"] = float(np.degrees(np.sqrt(max(yaw, 0.0))))
         info.update(self.task.info(estimate))
         truth = None if diverged else self.backend.ground_truth()
         if truth is not None:

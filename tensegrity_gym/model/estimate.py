@@ -32,6 +32,9 @@ class Estimate:
     """False while the estimator has lost track or has just been re-initialised."""
     reinitialised: bool = False
     """True on the update in which the estimator re-initialised itself."""
+    reinitialised_because: str | None = None
+    """Why, on that update, where the estimator says (``"off the ground"``, ``"rods
+    stretched"``, ...); None otherwise."""
     rod_quaternions: NDArray[np.float64] | None = None
     """Rod orientations (r, 4), (x, y, z, w), body z from a rod's first node to its second,
     where the method tracks the turn about the axis; None where it does not (the axis

@@ -96,3 +96,13 @@ def test_params_are_frozen_and_checked() -> None:
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="max_prediction_time"):
             HealthParams(max_prediction_time=bad)
+
+
+def test_a_reinitialisation_carries_its_reason_for_that_update_alone() -> None:
+    health = EstimatorHealth(HealthParams())
+    health.diverged("rods stretched")
+    health.reinitialised(placed=True)
+    first = health.fill(_estimate())
+    assert first.reinitialised and first.reinitialised_because == "rods stretched"
+    second = health.fill(_estimate())
+    assert not second.reinitialised and second.reinitialised_because is None

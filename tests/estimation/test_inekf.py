@@ -569,9 +569,26 @@ def test_an_estimate_off_the_ground_restarts_on_the_floor() -> None:
     f._T[2, 4:] += 1.0  # the position and every contact point, a metre up
     estimate = est.update(list(backend.step(hold).samples), hold)
     assert est.health.divergences == {"off the ground": 1}
-    assert estimate.reinitialised
+    assert estimate.reinitialised and estimate.reinitialised_because == "off the ground"
     lowest = estimate.node_positions[:, 2] - d.node_radii
     assert abs(float(lowest.min())) < 0.05
     truth = backend.ground_truth()
     assert truth is not None
     assert abs(float(estimate.com[2] - truth.com[2])) < 0.05
+
+
+def test_the_heading_a_dead_reckoner_loses_is_in_info() -> None:
+    """``info["estimator_heading_std_deg"]``: the InEKF's heading std, which nothing
+    but the magnetometer at reset observes, grows as the robot rolls; the reason of a
+    restart is in ``info["estimator_reinitialised_because"]`` (None without one)."""
+    env = gym.make(ENV_ID, estimator="inekf", max_episode_steps=40)
+    inner = cast("TensegrityEnv", env.unwrapped)
+    gait = FaceGait(inner.backend.description, inner.task)
+    obs, info = env.reset(seed=0)
+    stds = [info["estimator_heading_std_deg"]]
+    for _ in range(40):
+        obs, _, _, _, info = env.step(gait(obs))
+        stds.append(info["estimator_heading_std_deg"])
+        assert info["estimator_reinitialised_because"] is None
+    env.close()
+    assert all(np.isfinite(stds)) and stds[-1] > stds[1] > 0.0
