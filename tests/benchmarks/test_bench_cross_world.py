@@ -20,7 +20,9 @@ def test_every_world_differs_and_each_row_has_its_figures() -> None:
     """One seed, 40 steps, the UKF: a row per world with every figure finite (NEES
     too: the UKF has a covariance); the description-error world is another robot (its
     CoM path differs from the own world's), and the targets are checked off ``own``."""
-    result = bench_cross_world(("ukf",), seeds=(0,), steps=40)
+    result = bench_cross_world(("ukf", "ukf_exact_lengths"), seeds=(0,), steps=40)
+    exact = result["rows"]["ukf_exact_lengths"]  # the variant, on the same runs
+    assert set(exact) == set(WORLDS) and np.isfinite(exact["own"]["mean"]["nees_per_dof"])
     rows = result["rows"]["ukf"]
     assert set(rows) == set(WORLDS)
     for world, row in rows.items():
