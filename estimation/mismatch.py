@@ -120,15 +120,16 @@ class LimitMismatch:
         last, last_ns = self._last.copy(), self._last_ns.copy()
         for i, t_ns in enumerate(stamps):
             for k in np.flatnonzero(beyond[i]):
-                if absurd[i, k]:
-                    continue
                 step = abs(readings[i, k] - last[k])
                 reach = lim.rate[k] * max(t_ns - last_ns[k], 0) * 1e-9 + lim.tolerance
-                if np.isnan(last[k]) or step <= reach:
+                if not absurd[i, k] and (np.isnan(last[k]) or step <= reach):
                     mismatch[i, k] = True
-                    last[k], last_ns[k] = readings[i, k], t_ns
+                    last[k] = readings[i, k]
                     self._first_ns.setdefault(int(k), t_ns)
                     self._say(int(k), t_ns)
+                # A fault's time counts too: a channel stuck where it jumped to stays a
+                # jump away from its last reading in use, however long it stays there.
+                last_ns[k] = self._last_ns[k] = max(int(self._last_ns[k]), t_ns)
             inside = ~beyond[i] & np.isfinite(readings[i])
             last[inside], last_ns[inside] = readings[i, inside], t_ns
         return mismatch
@@ -139,7 +140,7 @@ class LimitMismatch:
         if not len(times):
             return
         self._last[:] = readings[-1]
-        self._last_ns[:] = seconds_to_ns(float(times[-1]))
+        self._last_ns[:] = np.maximum(self._last_ns, seconds_to_ns(float(times[-1])))
         self._seen_low = np.fmin(self._seen_low, readings.min(axis=0))
         self._seen_high = np.fmax(self._seen_high, readings.max(axis=0))
         for k in self._first_ns:

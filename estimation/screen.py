@@ -268,7 +268,7 @@ class PlausibilityScreen:
         self, times: NDArray[np.float64], x: NDArray[np.float64], verdict: Verdict
     ) -> Verdict:
         """``verdict`` with the rows out of range only by a description mismatch made
-        plausible (counted as ``encoder_beyond_description``)."""
+        plausible (counted in :attr:`beyond_description` under ``"encoder"``)."""
         b = self.bounds
         beyond = (x < b.rest_length_min) | (x > b.rest_length_max)
         mismatch = self.encoder_mismatch.judge(times, x, beyond)

@@ -102,16 +102,21 @@ def nees_per_dof(run: RecordedRun, estimates: list[Estimate], settle: float = 2.
     return float(np.mean(values)) if values else float("nan")
 
 
-def _score(run: RecordedRun, estimator: str, seed: int) -> dict[str, float]:
-    """One estimator replayed on one run: its figures."""
+def _score(run: RecordedRun, estimator: str, seed: int) -> dict[str, Any]:
+    """One estimator replayed on one run: its figures, the path the robot's CoM took
+    (m, in the ground plane) and why the estimator re-initialised (``reasons``)."""
     made = VARIANTS[estimator]() if estimator in VARIANTS else estimator_spec(estimator).create()
     estimates = replay(run, made, seed)
+    health = getattr(made, "health", None)
+    reasons = dict(health.reinitialisations_by_reason) if health is not None else {}
     errors = trajectory_errors(run, estimates)
     truths = [run.start.truth] + [s.truth for s in run.steps]
     if any(t is None for t in truths):
         raise ValueError("cross-world runs are recorded with their truth")
     drift = drift_metrics(truths, estimates, run.description.cable_nodes)  # type: ignore[arg-type]
     return {
+        "reasons": reasons,
+        "com_path_m": drift["com_ground_length_m"],
         "com_rmse_m": errors["com_rmse_m"],
         "rod_rotation_mean_deg": errors["rod_rotation_mean_deg"],
         "shape_error_mean_m": errors["shape_error_mean_m"],
@@ -129,11 +134,17 @@ def _reduce(values: list[float], how: Any) -> float:
     return round(float(how(finite)), 4) if finite else float("nan")
 
 
-def _summary(rows: list[dict[str, float]]) -> dict[str, Any]:
-    keys = rows[0].keys()
+def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Means and maxima of the runs' figures, and their re-initialisations by reason."""
+    keys = [k for k in rows[0] if k != "reasons"]
+    reasons: dict[str, int] = {}
+    for r in rows:
+        for why, n in r["reasons"].items():
+            reasons[why] = reasons.get(why, 0) + int(n)
     return {
         "mean": {k: _reduce([r[k] for r in rows], np.mean) for k in keys},
         "max": {k: _reduce([r[k] for r in rows], np.max) for k in keys},
+        "reinitialisations_by_reason": reasons,
         "runs": len(rows),
     }
 

@@ -152,7 +152,9 @@ class InekfConfig:
     estimated further above or below the floor the filter started on (z = 0, less
     their radii) is a divergence: a robot rolling on the ground cannot float or sink.
     Twice the deepest of the terrain presets' troughs (the valley's, a quarter of a rod
-    length): the filter knows no map."""
+    length): the filter knows no map. On a sloping floor the ground rises along the
+    travel, so a robot rolling far uphill or downhill (on a slope of s, 0.5 / s rod
+    lengths: 14 at 2 degrees) is taken for one off the ground and restarts."""
     max_refused_time: float = 0.5
     """s: the gate refusing every contact correction for longer is a divergence (the
     filter restarts): one that has drifted off would otherwise refuse them ever after."""

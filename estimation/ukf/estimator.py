@@ -336,7 +336,7 @@ class UkfEstimator:
             for_fit=True,
         )  # fmt: skip
         # The AHRS's axes turned into the world's by the alignment the filter keeps.
-        turn = so3_exp(self._kept_calibration()[:3])
+        turn = so3_exp(self._kept_alignment())
         return fit_initial_shape(
             self.description,
             self.measurements,
@@ -380,6 +380,13 @@ class UkfEstimator:
         self._initial_P = P
         self.filter = UnscentedKalmanFilter(x, P.copy(), c.sigma_points)
         self.watchdog = FilterWatchdog(c, self.description, self.measurements.rod_lengths)
+
+    def _kept_alignment(self) -> NDArray[np.float64]:
+        """(3,) rad: the alignment a re-initialisation keeps (:meth:`_kept_calibration`),
+        zeros where the state has none."""
+        if self.layout.alignment is None:
+            return np.zeros(3)
+        return self._kept_calibration()[:3]
 
     def _kept_calibration(self) -> NDArray[np.float64]:
         """The alignment (3,), rad, and the description's errors (k,), m, a

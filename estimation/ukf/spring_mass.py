@@ -290,6 +290,10 @@ class SpringMassModel:
             rest = rest[None]
         else:
             shift = np.asarray(offsets, dtype=np.float64).reshape(-1, 1, rest.shape[-1])
+            if shift.shape[0] not in (1, batch.shape[0]):
+                raise ValueError(
+                    f"offsets for {shift.shape[0]} states; propagating {batch.shape[0]}"
+                )
             rest = np.ascontiguousarray(rest[None] + shift)
         n = self.n_substeps(duration)
         if kernel is not None:

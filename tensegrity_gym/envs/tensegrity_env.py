@@ -7,6 +7,7 @@ goes to ``info`` (``com_true``, ``estimation_error``) and nowhere else.
 from __future__ import annotations
 
 import logging
+import math
 from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
@@ -157,7 +158,8 @@ class TensegrityEnv(gym.Env[np.ndarray, np.ndarray]):
         }
         if estimate.pose_covariance is not None:  # the heading a dead reckoner is unsure of
             yaw = float(estimate.pose_covariance[2, 2])
-            info["estimator_heading_std_deg"] = float(np.degrees(np.sqrt(max(yaw, 0.0))))
+            finite = math.isfinite(yaw) and yaw >= 0.0
+            info["estimator_heading_std_deg"] = math.degrees(math.sqrt(yaw)) if finite else None
         info.update(self.task.info(estimate))
         truth = None if diverged else self.backend.ground_truth()
         if truth is not None:

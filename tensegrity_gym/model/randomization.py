@@ -54,7 +54,9 @@ class Randomization:
     """Scale of each rod's length (its endcaps' distance); the rod stays centred."""
     endcap_offset: Interval = (0.0, 0.0)
     """m by which each endcap, where the cables attach, sits further out along its rod
-    than the description says (each end draws its own; negative: further in)."""
+    than the description says (negative: further in). Both ends draw, and the rod's
+    length between its endcaps grows by their sum; the rod's mass stays centred between
+    them, so the draw moves where the cables pull, not the rod's balance."""
     cable_stiffness: Interval = (1.0, 1.0)
     """Scale of each cable's stiffness."""
     cable_damping: Interval = (1.0, 1.0)
@@ -286,6 +288,8 @@ class WorldDraw:
             "motor_range_offset_m": [
                 round(a.min_rest_length - b.min_rest_length, 5) for a, b in motors
             ],
+            # m each actuated cable is longer than its encoder reads: the zero and the
+            # share of actuated_rest_offset together.
             "encoder_zero_m": [
                 round(float(e), 5)
                 for (a, _), e in zip(pairs, self.encoder_offsets, strict=True)

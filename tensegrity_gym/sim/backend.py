@@ -610,13 +610,15 @@ class SimBackend:
     def _as_built(self, robot: RobotDescription) -> RobotDescription:
         """``robot`` with its actuated cables as long as the motors hold them at reset:
         the encoders read the description's rest lengths, the cables are longer by the
-        encoders' zero errors (within the motors' own range). The robot settles so: a
-        pose settled with other lengths would snap into shape at the first step."""
-        if not self._offsets.any():
-            return robot
+        encoders' zero errors, within the motors' own range (which a randomised world
+        may shift). The robot settles so: a pose settled with other lengths would snap
+        into shape at the first step."""
         lo, hi, _ = robot.motor_limits
-        rest = robot.rest_lengths[robot.actuated] + self._offsets
-        held = dict(zip(robot.actuated.tolist(), np.clip(rest, lo, hi).tolist(), strict=True))
+        actuated = robot.rest_lengths[robot.actuated]
+        rest = np.clip(actuated + self._offsets, lo, hi)
+        if np.array_equal(rest, actuated):
+            return robot
+        held = dict(zip(robot.actuated.tolist(), rest.tolist(), strict=True))
         cables = tuple(
             replace(c, rest_length=held[k]) if k in held else c for k, c in enumerate(robot.cables)
         )

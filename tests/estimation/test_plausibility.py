@@ -417,10 +417,12 @@ def test_a_reading_that_jumps_beyond_or_is_absurd_is_still_a_fault(robot: Any) -
         kept = screen.screen(_encoder_stream(d, 1, path))
         assert [float(s.rest_lengths[1]) for s in kept] == [mid, mid, mid], bad
         assert screen.rejected == {"encoder_out_of_range": 1} and screen.mismatches == ()
-    screen = PlausibilityScreen(d, b, 1.0)
-    stuck = np.concatenate([[mid], np.full(150, hi[1] + 2.0 * (hi[1] - lo[1]))])
-    screen.screen(_encoder_stream(d, 1, stuck))
-    assert screen.failed == ("encoders",) and screen.mismatches == ()
+    for level in (hi[1] + 0.03, hi[1] + 2.0 * (hi[1] - lo[1])):  # within reach, and not
+        screen = PlausibilityScreen(d, b, 1.0)
+        stuck = np.concatenate([[mid], np.full(150, level)])
+        kept = screen.screen(_encoder_stream(d, 1, stuck))
+        assert len(kept) == 1 and screen.mismatches == (), level  # never let in
+        assert screen.failed == ("encoders",)
 
 
 def test_a_channel_beyond_its_range_from_the_start_is_a_mismatch(robot: Any) -> None:

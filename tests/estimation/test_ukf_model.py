@@ -348,3 +348,33 @@ def test_each_state_propagates_with_its_own_rest_length_offsets() -> None:
         expected = alone.propagate(states[s], 0.1, rest + shift, rest - 0.01 + shift)
         np.testing.assert_allclose(together[s], expected, rtol=0, atol=1e-12)
     assert np.abs(together[0] - together[1]).max() > 1e-4  # the offsets matter
+
+
+@pytest.mark.parametrize(
+    ("config", "dim"),
+    [
+        (UkfConfig(use_imu=False, rest_length_error_sigma=None, rod_length_error_sigma=None), 36),
+        (UkfConfig(alignment_sigma=None), 45),
+        (UkfConfig(rest_length_error_sigma=None, rod_length_error_sigma=None), 39),
+        (UkfConfig(), 48),
+    ],
+)
+def test_every_state_layout_resets_and_restarts(config: UkfConfig, dim: int) -> None:
+    """With or without the AHRS frame's alignment and the description's lengths, the
+    filter resets, updates and re-initialises from its samples; the alignment it
+    reports is zero where it has none."""
+    from agents.benchmarks.estimation import record_face_transition
+
+    run = record_face_transition("tensegrity_gym/ThreeBarRoll-v0", 0, 12, calibration="true")
+    est = UkfEstimator(config)
+    est.reset(run.description, run.calibration, run.start.samples, run.start.command, RNG)
+    assert est.filter.x.shape == (dim,)
+    for step in run.steps[:6]:
+        est.update(step.samples, step.command)
+    est.health.request_reinitialisation("test")
+    estimate = est._reinitialise()
+    assert estimate.is_finite() and est.filter.x.shape == (dim,)
+    if config.alignment_sigma is None or not config.use_imu:
+        np.testing.assert_array_equal(est.ahrs_alignment, 0.0)
+    for step in run.steps[6:]:
+        assert est.update(step.samples, step.command).is_finite()

@@ -347,17 +347,34 @@ def test_a_reset_rests_until_the_estimator_can_start() -> None:
     env.close()
 
 
-def test_a_robot_whose_encoders_are_zeroed_off_rests_at_reset() -> None:
-    """Cables 1.5 cm shorter than their encoders read: the robot settles at those
-    lengths before the episode starts, so that holding the description's rest lengths
-    moves it by millimetres (measured 1.7 mm; a pose settled with other lengths snapped
-    into shape at the first step, throwing the 3-bar 36 cm)."""
-    env = _env(Randomization(encoder_zero=(-0.015, -0.015)))
+@pytest.mark.parametrize(
+    ("randomization", "held"),
+    [
+        (Randomization(encoder_zero=(-0.015, -0.015)), -0.015),  # the zeros off
+        (Randomization(motor_range_offset=(-0.03, -0.03)), None),  # the range below them
+    ],
+)
+def test_a_robot_whose_cables_are_not_as_described_rests_at_reset(
+    randomization: Randomization, held: float | None
+) -> None:
+    """Cables 1.5 cm shorter than their encoders read, or motors whose range ends below
+    the description's rest lengths: the robot settles at the lengths its motors hold
+    before the episode starts, so that holding the description's rest lengths moves it
+    by millimetres (measured 1.7 mm for the zeros; a pose settled with other lengths
+    snapped into shape at the first step, throwing the 3-bar 36 cm)."""
+    env = _env(randomization)
     env.reset(seed=0)
     backend = env.unwrapped.backend  # type: ignore[attr-defined]
     before = backend.ground_truth().node_positions
     rest = D.rest_lengths[D.actuated]
-    np.testing.assert_allclose(backend.ground_truth().rest_lengths[D.actuated], rest - 0.015)
+    true_rest = backend.ground_truth().rest_lengths[D.actuated]
+    if held is None:  # at the shifted range's top
+        top = np.array([c.motor.max_rest_length for c in backend.world.description.cables
+                        if c.motor is not None])  # fmt: skip
+        np.testing.assert_allclose(true_rest, top)
+        assert np.all(top < rest)
+    else:
+        np.testing.assert_allclose(true_rest, rest + held)
     env.step(env.unwrapped.targets_to_action(rest))  # type: ignore[attr-defined]
     moved = np.linalg.norm(backend.ground_truth().node_positions - before, axis=1)
     assert moved.max() < 0.005, moved
