@@ -286,8 +286,9 @@ def make_env(
             disk), ``"true"`` (the simulator's, for ablations) or a calibration file.
         world_seed: draws the simulated lab once for the env's life: where its anchors
             stand and every pair's UWB offset (a real lab's are constants).
-        randomization: ``None`` (the description, exactly), ``"mild"``, ``"strong"``, a
-            lab's registered name or a
+        randomization: ``None`` (the description, exactly), ``"mild"``, ``"strong"``,
+            ``"description"`` (the description's own error alone), a lab's registered
+            name or a
             :class:`~tensegrity_gym.model.randomization.Randomization`: each reset draws
             the simulated robot and world from its ranges (``info["randomization"]``);
             the estimators keep the nominal description.

@@ -360,8 +360,8 @@ def test_a_robot_whose_cables_are_not_as_described_rests_at_reset(
     """Cables 1.5 cm shorter than their encoders read, or motors whose range ends below
     the description's rest lengths: the robot settles at the lengths its motors hold
     before the episode starts, so that holding the description's rest lengths moves it
-    by millimetres (measured 1.7 mm for the zeros; a pose settled with other lengths
-    snapped into shape at the first step, throwing the 3-bar 36 cm)."""
+    by millimetres (a pose settled with other lengths snapped into shape at the first
+    step)."""
     env = _env(randomization)
     env.reset(seed=0)
     backend = env.unwrapped.backend  # type: ignore[attr-defined]
