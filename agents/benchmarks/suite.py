@@ -103,6 +103,7 @@ def run_benchmarks(
     engines: bool = False,
     engine: str | None = None,
     cross_world: bool = False,
+    lab_calibration: bool = False,
 ) -> dict[str, Any]:
     """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.benchmarks.bags`) and
     the robot link against the emulator (:mod:`agents.benchmarks.link`, ``link_steps`` 10 Hz
@@ -113,9 +114,10 @@ def run_benchmarks(
     ``SubprocVecEnv`` and the sizing model's costs (:mod:`agents.benchmarks.ray_cluster`), and the
     estimation study's replays as Ray tasks on that cluster; with ``engines``, the physics
     engines side by side (:mod:`agents.benchmarks.engines`); with ``cross_world``, every
-    estimator on worlds it was not tuned in (:mod:`agents.benchmarks.cross_world`).
-    ``engine`` runs the env speed and memory figures on that physics engine (None: the
-    default)."""
+    estimator on worlds it was not tuned in (:mod:`agents.benchmarks.cross_world`); with
+    ``lab_calibration``, the UWB calibration at a lab's conditions
+    (:mod:`agents.benchmarks.lab_calibration`). ``engine`` runs the env speed and memory
+    figures on that physics engine (None: the default)."""
     with executor(ray_address) as jobs:
         results = _run(speed_steps, memory_steps, estimation, bag_minutes, link_steps,
                        soak_minutes, sim2real, jobs, engine)  # fmt: skip
@@ -128,6 +130,10 @@ def run_benchmarks(
             from agents.benchmarks.cross_world import bench_cross_world
 
             results["cross_world"] = bench_cross_world()
+        if lab_calibration:
+            from agents.benchmarks.lab_calibration import bench_lab_calibration
+
+            results["lab_calibration"] = bench_lab_calibration()
         if not jobs.local:
             from agents.benchmarks.ray_cluster import bench_ray
 

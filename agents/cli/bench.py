@@ -75,6 +75,12 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
         "engine and description error, 3 seeds, rolling and turning (needs "
         "tensegrity-gym[mujoco])",
     )
+    bench.add_argument(
+        "--lab-calibration",
+        action="store_true",
+        help="also calibrate the UWB anchors at a lab's conditions: SUPERball carried through "
+        "a 10 x 15 m room, 1-3 Hz pairs, no robot-robot ranges, a 4 m common offset",
+    )
     add_engine(bench)
     add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
@@ -96,6 +102,7 @@ def run_bench(args: argparse.Namespace) -> int:
         engines=args.engines,
         engine=args.engine,
         cross_world=args.cross_world,
+        lab_calibration=args.lab_calibration,
     )
     text = json.dumps(results, indent=2)
     if args.out:

@@ -157,7 +157,15 @@ def run_estimate(args: argparse.Namespace) -> int:
 
 def add_calibrate(cal: argparse.ArgumentParser) -> None:
     """``calibrate``'s options: a bag, or the env whose calibration run is recorded."""
-    cal.add_argument("bag", nargs="?", default=None, help="a bag of the robot moving")
+    cal.add_argument("bag", nargs="?", default=None,
+                     help="a bag of the robot moving, or a lab's ranges file (.csv, .npz: "
+                     "columns t, node, anchor, range)")  # fmt: skip
+    cal.add_argument("--ids", default=None,
+                     help="the ranges file's id map (YAML: the lab's ids -> the "
+                     "description's nodes and anchors)")  # fmt: skip
+    cal.add_argument("--floor", default=None,
+                     help="anchor heights above the floor (m), for a robot that never "
+                     "rested on it: '0=4.7 1=4.5' or '0,1,2,3=4.6'")  # fmt: skip
     cal.add_argument(
         "--env", default=None, help=env_help("or record a calibration run of this env id")
     )
@@ -175,7 +183,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     result = calibrate_command(
         bag=args.bag, env_id=args.env, seconds=args.seconds, world_seed=args.world_seed,
-        robot=args.robot, out=Path(args.out), engine=args.engine,
+        robot=args.robot, out=Path(args.out), engine=args.engine, ids=args.ids,
+        floor=args.floor,
     )  # fmt: skip
     sys.stdout.write(result + "\n")
     return 0

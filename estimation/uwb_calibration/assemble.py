@@ -44,6 +44,7 @@ def assemble(
     config: CalibrationConfig,
     *,
     use: NDArray[np.bool_] | None = None,
+    floor: bool = True,
 ) -> Assembly:
     """The problem over samples ``rounds`` (S,) with alpha ``valid`` (R, n).
 
@@ -51,6 +52,7 @@ def assemble(
         free: (A, 3) anchor coordinates to solve for.
         config: the sigmas and the offset prior.
         use: (k,) robot-anchor rows that may enter (outliers left out); default all.
+        floor: with the floor terms (the robot rests on z = 0).
     """
     n = table.n_nodes
     slot = np.full((len(rounds), n), -1, dtype=np.intp)
@@ -87,7 +89,7 @@ def assemble(
         range_sigma=config.range_sigma,
         bar_sigma=config.bar_sigma,
         offset_spread=config.offset_spread,
-        floor=_floor_rows(slot, description, config.floor_sigma),
+        floor=_floor_rows(slot, description, config.floor_sigma) if floor else None,
     )
     return Assembly(problem, rounds, slot, rows)
 

@@ -17,13 +17,24 @@ import numpy as np
 
 from estimation.ukf.filter import single_threaded_blas
 from estimation.uwb_calibration.config import CalibrationConfig
+from estimation.uwb_calibration.floor import (
+    FloorHint,
+    GravityRows,
+    floor_from_gravity,
+    floor_from_hint,
+    lowest_floor,
+    parse_floor_hint,
+    to_floor_frame,
+)
 from estimation.uwb_calibration.geometry import chiral_quadruples, signed_volumes
 from estimation.uwb_calibration.lm import global_covariance
 from estimation.uwb_calibration.result import CalibrationError, CalibrationResult, residual_stats
 from estimation.uwb_calibration.rounds import jump_outliers, merge_rounds, range_table, sample_rows
-from estimation.uwb_calibration.solve import Run, refine, solve_table
+from estimation.uwb_calibration.solve import Run, refine, refine_free, rested, solve_table
+from estimation.uwb_calibration.timing import fitted_to_rates
 from estimation.uwb_calibration.verdict import judge
 from tensegrity_gym.model.kinematics import weighted_kabsch
+from tensegrity_gym.model.samples import ImuSample, UwbRangeSample
 
 if TYPE_CHECKING:
     from collections.abc import Iterable, Mapping, Sequence
@@ -32,8 +43,8 @@ if TYPE_CHECKING:
 
     from estimation.uwb_calibration.rounds import RangeTable
     from estimation.uwb_calibration.solve import Solved
+    from estimation.uwb_calibration.timing import RangingRates
     from tensegrity_gym.model.description import RobotDescription
-    from tensegrity_gym.model.samples import UwbRangeSample
 
 __all__ = ["calibrate_ranges", "calibrate_samples"]
 
@@ -51,6 +62,8 @@ def calibrate_ranges(
     config: CalibrationConfig | None = None,
     rng: np.random.Generator | None = None,
     rounds: ArrayLike | None = None,
+    gravity: GravityRows | None = None,
+    floor_hint: FloorHint | str | None = None,
 ) -> CalibrationResult:
     """Calibrate anchors and offsets from rows ``(t, module_i, module_j, range)``.
 
@@ -69,19 +82,32 @@ def calibrate_ranges(
         rng: draws the samples; the same generator state gives the same result.
         rounds: a round index per row (all rows of one ``UwbRangeSample``); default:
             rows are grouped by time (``config.round_gap``).
+        gravity: the rods' accelerometer readings, where the recording has them: they
+            tell the floor when the robot did not rest on it.
+        floor_hint: anchor heights above the floor (m) a lab knows, a
+            :class:`~estimation.uwb_calibration.floor.FloorHint` or its text
+            (``"0=4.7 1=4.5"``, ``"0,1,2,3=4.6"``); used where the robot did not rest on
+            the floor.
 
-    The run must start with the robot at rest in its description's resting pose (as
-    a simulated episode does), then move it about, ideally far across the anchors.
+    A robot rolled about on the floor should start at rest in its description's
+    resting pose (as a simulated episode does): the floor is then the one it rests
+    on. A robot carried about may start any way round; the floor then comes from
+    ``gravity``, else ``floor_hint`` (see :mod:`~estimation.uwb_calibration.floor`),
+    else the result says it is not known. Ideally the robot travels far across the
+    anchors.
 
     Raises:
         CalibrationError: too few usable samples (rounds in which some module ranged
             at least 4 anchors), or an anchor no counted module ranged.
-        ValueError: malformed rows or known anchors.
+        ValueError: malformed rows, known anchors or floor hint.
     """
     clock = time.perf_counter()
     config = config or CalibrationConfig()
     rng = rng if rng is not None else np.random.default_rng(0)
-    table = _table(t, module_i, module_j, ranges, description, config, rounds)
+    hint = parse_floor_hint(floor_hint) if isinstance(floor_hint, str) else floor_hint
+    if hint is not None:
+        hint.check(len(description.anchors))
+    table, config, rates = _table(t, module_i, module_j, ranges, description, config, rounds)
     anchor_jumps, robot_jumps = jump_outliers(table, config.jump_threshold)
     jumps = np.concatenate([anchor_jumps, robot_jumps])
     screened = float(np.mean(jumps)) if len(jumps) else 0.0
@@ -93,26 +119,82 @@ def calibrate_ranges(
     # The solve's dense blocks are a few hundred rows: BLAS threads only get in the way.
     with single_threaded_blas():
         solved = solve_table(run)
+        carried = known is None and not rested(solved, table.n_nodes)
         if known is not None:
             solved, to_lab = _with_known(run, solved, known)
+        elif carried:
+            solved = refine_free(run, solved)
         solved, mirror, votes = _settle_mirror(solved, description, to_lab is None)
-        result = _result(table, solved, usable, config, mirror, votes)
+        result = _result(table, solved, usable, config, mirror, votes, carried)
     if to_lab is not None:
         R, shift = to_lab
-        result = replace(result, anchors=result.anchors @ R.T + shift, frame="known")
-    extras = result.extras | {"screened_share": screened}
+        result = replace(result, anchors=result.anchors @ R.T + shift, frame="known", floor="known")
+    elif carried:
+        result = _on_floor(result, solved, replace(run, on_floor=False), gravity, hint)
+    verdict, flagged = judge(result, config)
+    result = replace(result, verdict=verdict, flagged_anchors=flagged)
+    extras = result.extras | {"screened_share": screened, "sample_period": config.sample_period,
+                              "window": config.window, "module_rate": rates.module,
+                              "pair_rate": rates.pair}  # fmt: skip
     result = replace(result, wall_time=time.perf_counter() - clock, extras=extras)
     logger.info("UWB calibration: %s (%.1f s)", result.verdict, result.wall_time)
     return result
 
 
 def calibrate_samples(
-    samples: Iterable[UwbRangeSample], description: RobotDescription, **kwargs: object
-) -> CalibrationResult:
-    """:func:`calibrate_ranges` on recorded or simulated ``UwbRangeSample`` rounds;
-    each sample is one round. ``kwargs`` as :func:`calibrate_ranges` takes them."""
-    t, i, j, ranges, index = sample_rows(samples)
+    samples: Iterable[UwbRangeSample | ImuSample], description: RobotDescription,
+    **kwargs: object,
+) -> CalibrationResult:  # fmt: skip
+    """:func:`calibrate_ranges` on recorded or simulated ``UwbRangeSample`` rounds (each
+    one round), with the ``ImuSample`` among them as its ``gravity``. ``kwargs`` as
+    :func:`calibrate_ranges` takes them."""
+    rows = list(samples)
+    ranges_only = [s for s in rows if isinstance(s, UwbRangeSample)]
+    imu = [s for s in rows if isinstance(s, ImuSample)]
+    t, i, j, ranges, index = sample_rows(ranges_only)
+    if imu and "gravity" not in kwargs:
+        kwargs["gravity"] = GravityRows(
+            np.array([s.t for s in imu]), np.array([s.rod for s in imu], dtype=np.intp),
+            np.array([s.accel for s in imu], dtype=np.float64).reshape(-1, 3),
+        )  # fmt: skip
     return calibrate_ranges(t, i, j, ranges, description, rounds=index, **kwargs)  # type: ignore[arg-type]
+
+
+def _on_floor(
+    result: CalibrationResult,
+    solved: Solved,
+    run: Run,
+    gravity: GravityRows | None,
+    hint: FloorHint | None,
+) -> CalibrationResult:
+    """``result`` of a free-frame solve (the robot did not rest on the floor) turned
+    onto the floor that the IMUs' gravity and the lab's hint tell; in the anchors'
+    gauge, the floor unknown, where neither does."""
+    d, positions = run.description, solved.state.positions
+    up: NDArray[np.float64] | None = None
+    source, extras = "none", dict(result.extras)
+    if gravity is not None:
+        times = run.table.round_times[solved.assembly.rounds]
+        found = floor_from_gravity(positions, solved.assembly.slot, times, gravity, d,
+                                   0.5 * run.config.sample_period)  # fmt: skip
+        if found is not None:
+            up, source = found[0], "gravity"
+            extras["gravity_rows"] = float(found[1])
+    height = 0.0 if up is None else -lowest_floor(up, positions, d)
+    fit = floor_from_hint(result.anchors, hint, positions, up) if hint is not None else None
+    if fit is not None:
+        up, height, misfit = fit
+        source = "gravity+hint" if source == "gravity" else "hint"
+        extras["floor_hint_misfit"] = misfit
+    if up is None:
+        return replace(result, anchors=result.anchors_in_anchor_frame(), frame="anchors",
+                       floor="none", extras=extras)  # fmt: skip
+    R, shift = to_floor_frame(result.anchors, up, height)
+    return replace(result, anchors=result.anchors @ R.T + shift, floor=source, extras=extras)
+
+
+_SLOWEST_SAMPLE = 5.0
+"""s: a sample longer than this (ranging too sparse) is refused, not solved."""
 
 
 def _table(
@@ -123,7 +205,9 @@ def _table(
     description: RobotDescription,
     config: CalibrationConfig,
     rounds: ArrayLike | None,
-) -> RangeTable:
+) -> tuple[RangeTable, CalibrationConfig, RangingRates]:
+    """The rows as a table of samples, the settings fitted to the rows' ranging rates,
+    and those rates."""
     n_anchors = len(description.anchors)
     if n_anchors < 4:
         raise CalibrationError(
@@ -135,7 +219,15 @@ def _table(
         t, module_i, module_j, ranges,
         n_nodes=description.n_nodes, n_anchors=n_anchors, round_gap=gap, rounds=rounds,
     )  # fmt: skip
-    return merge_rounds(table, config.sample_period)
+    config, rates = fitted_to_rates(config, table, n_anchors)
+    if config.sample_period > _SLOWEST_SAMPLE:
+        raise CalibrationError(
+            f"the recording ranges each robot module {rates.module:.2g} times a second "
+            f"(all anchors together): a module would need {config.sample_period:.0f} s to "
+            f"range {config.min_anchor_ranges} anchors, over which the robot does not "
+            "stand still"
+        )
+    return merge_rounds(table, config.sample_period), config, rates
 
 
 def _usable(
@@ -243,7 +335,9 @@ def _result(
     config: CalibrationConfig,
     mirror: str,
     votes: tuple[int, int],
+    free_frame: bool = False,
 ) -> CalibrationResult:
+    """The result in the solve's frame, not yet judged."""
     p, s = solved.assembly.problem, solved.state
     n, A = table.n_nodes, table.n_anchors
     a, j, _, _ = p.anchor_rows
@@ -256,7 +350,7 @@ def _result(
         tuple(residual_stats(r[(a == k) & (j == q)], threshold) for q in range(n)) for k in range(A)
     )
     cov = global_covariance(p, s, config.final_loss, config.loss_scale)
-    sigma = _anchor_sigma(cov, p.anchor_columns(), s.anchors) * max(
+    sigma = _anchor_sigma(cov, p.anchor_columns(), s.anchors, free_frame) * max(
         spread / config.range_sigma, 1.0
     )
     pair, _, _, _ = p.robot_rows
@@ -267,33 +361,39 @@ def _result(
     extras = {"residual_spread": spread, "outlier_threshold": threshold,
               "contact_share": float(contact), "mirror_votes": float(votes[1]),
               "mirror_agree": float(votes[0])}  # fmt: skip
-    result = CalibrationResult(
+    return CalibrationResult(
         anchors=s.anchors.copy(), offsets=_offset_matrix(s.offsets, s.mean_offset, n, A),
         mean_offset=float(s.mean_offset), anchor_sigma=np.asarray(sigma),
         anchor_stats=anchor_stats, pair_stats=pair_stats, robot_pair_count=rr + rr.T,
         n_samples=len(solved.assembly.rounds), n_usable=len(usable), n_rounds=table.n_rounds,
         cost=float(solved.cost), verdict="good", flagged_anchors=(), mirror=mirror, extras=extras,
     )  # fmt: skip
-    verdict, flagged = judge(result, config)
-    return replace(result, verdict=verdict, flagged_anchors=flagged)
 
 
 def _anchor_sigma(
-    cov: NDArray[np.float64], column: NDArray[np.intp], anchors: NDArray[np.float64]
+    cov: NDArray[np.float64],
+    column: NDArray[np.intp],
+    anchors: NDArray[np.float64],
+    free_frame: bool = False,
 ) -> NDArray[np.float64]:
     """Standard error (m) of each anchor (A,) from the global covariance ``cov``, with
     what a shift along the floor and a turn about z of the whole constellation would
-    explain taken out (the gauge's choice of which anchors to hold)."""
+    explain taken out (the gauge's choice of which anchors to hold); in a free frame,
+    what any shift and turn would."""
     A = len(anchors)
     flat = column.ravel()
     full = np.zeros((3 * A, 3 * A))
     solved = np.flatnonzero(flat >= 0)
     full[np.ix_(solved, solved)] = cov[np.ix_(flat[solved], flat[solved])]
     rel = anchors - anchors.mean(axis=0)
-    motions = np.zeros((A, 3, 3))
-    motions[:, 0, 0] = motions[:, 1, 1] = 1.0
-    motions[:, 0, 2], motions[:, 1, 2] = -rel[:, 1], rel[:, 0]
-    T = motions.reshape(3 * A, 3)
+    # Columns: shifts along x, y, z, then turns about z, x, y (each anchor's motion).
+    motions = np.zeros((A, 3, 6))
+    motions[:, 0, 0] = motions[:, 1, 1] = motions[:, 2, 2] = 1.0
+    motions[:, 0, 3], motions[:, 1, 3] = -rel[:, 1], rel[:, 0]
+    motions[:, 1, 4], motions[:, 2, 4] = -rel[:, 2], rel[:, 1]
+    motions[:, 2, 5], motions[:, 0, 5] = -rel[:, 0], rel[:, 2]
+    kept = [0, 1, 2, 3, 4, 5] if free_frame else [0, 1, 3]
+    T = motions[:, :, kept].reshape(3 * A, len(kept))
     P = np.eye(3 * A) - T @ np.linalg.pinv(T)
     var = np.diag(P @ full @ P.T).reshape(A, 3).sum(axis=1)
     return np.asarray(np.sqrt(np.maximum(var, 0.0)))

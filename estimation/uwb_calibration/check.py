@@ -134,7 +134,7 @@ def fit_residuals(
     ranged ``config.min_anchor_ranges`` anchors."""
     config = config or CalibrationConfig()
     t, i, j, ranges, index = sample_rows(samples)
-    table = _table(t, i, j, ranges, description, config, index)
+    table, config, _ = _table(t, i, j, ranges, description, config, index)
     usable = np.flatnonzero(table.valid_modules(config.min_anchor_ranges).any(axis=1))
     if len(usable) == 0:
         return np.zeros(0), np.zeros(0, dtype=np.intp)
@@ -170,7 +170,7 @@ def check_calibration(
     """
     config = config or CalibrationConfig()
     rng = rng if rng is not None else np.random.default_rng(0)
-    table = _table(t, module_i, module_j, ranges, description, config, rounds)
+    table, config, _ = _table(t, module_i, module_j, ranges, description, config, rounds)
     usable = np.flatnonzero(table.valid_modules(config.min_anchor_ranges).any(axis=1))
     if len(usable) == 0:
         raise CalibrationError(

@@ -64,12 +64,19 @@ class CalibrationConfig:
     """Joint solves per stage, the floor contacts re-read before each."""
     window: float = 0.4
     """Length (s) of the windows whose ranges are pooled as if the robot stood still:
-    for the starting shape, and for the floor and the handedness checks."""
+    for the starting shape, and for the floor and the handedness checks. The least:
+    where the data ranges too slowly for each anchor to reach several modules in it,
+    it is lengthened (:mod:`~estimation.uwb_calibration.timing`)."""
     sample_period: float = 0.2
     """Samples are the UWB rounds in bins of this many seconds (3 rounds at 15 Hz): with
     30-70 % of packets lost, one round seldom has 4 anchors for a module; a few rounds
     together mostly do, while the robot moves millimetres to centimetres. A period
-    shorter than a round keeps one round a sample."""
+    shorter than a round keeps one round a sample. The least: where the data's
+    ranging rate leaves too few anchors per module in it (a lab's hardware ranging
+    each pair about once a second), it is lengthened to what the rate needs."""
+    first_span: float = 2.0
+    """Seconds of the run the solve's first growth stage spans (then 2, 4, 8 times
+    that...); lengthened to 10 samples where the samples are long."""
     round_gap: float | None = None
     """Rows closer in time than this (s) belong to one UWB round; None: half the round
     period of the description's ``sensors.uwb.rate``."""
@@ -88,6 +95,9 @@ class CalibrationConfig:
     outlier_fraction: float = 0.2
     """Share of an anchor's ranges that are outliers above which it is flagged (and
     above 3 times the anchors' median share)."""
+    max_hint_misfit: float = 0.1
+    """RMS (m) of a floor hint's anchor heights against the calibrated anchors above
+    which the verdict is doubtful."""
     max_anchor_sigma: float = 0.03
     """Predicted anchor standard error (m) above which the verdict is doubtful: the
     robot did not travel far enough across the anchors to fix them better."""
@@ -97,6 +107,7 @@ class CalibrationConfig:
             raise ValueError(f"min_anchor_ranges must be >= 3, got {self.min_anchor_ranges}")
         if self.n_starts < 1 or self.max_samples < 1 or self.min_samples < 1:
             raise ValueError("n_starts, max_samples and min_samples must be >= 1")
-        for name in ("range_sigma", "bar_sigma", "loss_scale", "window", "floor_slab"):
+        for name in ("range_sigma", "bar_sigma", "loss_scale", "window", "floor_slab",
+                     "sample_period", "first_span"):  # fmt: skip
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")

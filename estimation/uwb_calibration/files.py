@@ -4,7 +4,8 @@ The file (``version: 1``)::
 
     version: 1
     robot: superball            # the description's name; "" if unknown
-    frame: floor                # or "known" (the lab's frame of known anchors)
+    frame: floor                # or "known" (the lab's frame of known anchors), or
+                                # "anchors" (no floor found: the anchors' own gauge)
     anchors: [[x, y, z], ...]   # m, (A, 3)
     offsets: [[...], ...]       # m, (n + A, n + A), symmetric
     camera:                     # optional: a SensorCalibration's camera
@@ -49,6 +50,8 @@ __all__ = [
 ]
 
 VERSION = 1
+FRAMES = ("floor", "known", "anchors")
+FLOORS = ("contacts", "gravity", "hint", "gravity+hint", "known", "none")
 _STATS = ("count", "median", "spread", "rms", "outlier_fraction", "drift")
 
 
@@ -93,6 +96,7 @@ def _result_doc(r: CalibrationResult) -> dict[str, Any]:
     pairs = {k: [[float(getattr(s, k)) for s in row] for row in r.pair_stats] for k in _STATS}
     return {
         "verdict": r.verdict,
+        "floor": r.floor,
         "flagged_anchors": [int(a) for a in r.flagged_anchors],
         "mirror": r.mirror,
         "mean_offset": float(r.mean_offset),
@@ -222,7 +226,9 @@ def _result(
     r: _Reader, doc: Any, anchors: NDArray[np.float64], offsets: NDArray[np.float64], frame: str
 ) -> CalibrationResult:
     """The ``result`` section as a :class:`CalibrationResult`."""
-    d = r.mapping(doc, "result", _RESULT_KEYS, set())
+    d = r.mapping(doc, "result", _RESULT_KEYS, {"floor"})  # files before "floor": contacts
+    if d.get("floor", "contacts") not in FLOORS:
+        raise r.fail("result.floor", f"expected one of {', '.join(FLOORS)}, got {d['floor']!r}")
     A, n = len(anchors), len(offsets) - len(anchors)
     listed = d["anchor_residuals"] if isinstance(d["anchor_residuals"], list) else []
     if len(listed) != A:
@@ -254,6 +260,7 @@ def _result(
         flagged_anchors=tuple(int(a) for a in d["flagged_anchors"]),
         mirror=str(d["mirror"]),
         frame=frame,
+        floor=str(d.get("floor", "contacts")),
         wall_time=float(d["wall_time"]),
         extras={str(k): float(v) for k, v in dict(d["extras"]).items()},
     )
@@ -297,8 +304,8 @@ def load_calibration(
     )
     if d["version"] != VERSION:
         raise r.fail("version", f"expected {VERSION}, got {d['version']!r}")
-    if d["frame"] not in ("floor", "known"):
-        raise r.fail("frame", f"expected 'floor' or 'known', got {d['frame']!r}")
+    if d["frame"] not in FRAMES:
+        raise r.fail("frame", f"expected one of {', '.join(FRAMES)}, got {d['frame']!r}")
     anchors = r.array(d["anchors"], "anchors", (None, 3))
     offsets = r.array(d["offsets"], "offsets", (None, None))
     size = len(offsets)

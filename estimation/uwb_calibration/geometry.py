@@ -8,7 +8,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from tensegrity_gym.model.kinematics import weighted_kabsch
+from tensegrity_gym.model.kinematics import uwb_module_positions as module_positions
+from tensegrity_gym.model.kinematics import weighted_kabsch, yaw_kabsch
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
@@ -18,24 +19,15 @@ if TYPE_CHECKING:
 __all__ = [
     "bar_lengths",
     "chiral_quadruples",
+    "floor_frame_errors",
     "module_positions",
     "multilaterate",
     "nodes_from_modules",
+    "rigid_alignment_errors",
     "rigid_alignment_rms",
     "signed_volumes",
+    "tilt_degrees",
 ]
-
-
-def module_positions(
-    description: RobotDescription, nodes: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """Robot module positions (..., n, 3) for node positions (..., n, 3): each sits
-    ``sensors.uwb.module_offset`` m from its endcap centre toward the rod centre."""
-    rn = description.rod_nodes
-    centres = 0.5 * (nodes[..., rn[:, 0], :] + nodes[..., rn[:, 1], :])
-    toward = centres[..., description.node_rod, :] - nodes
-    toward /= np.linalg.norm(toward, axis=-1, keepdims=True)
-    return np.asarray(nodes + description.sensors.uwb.module_offset * toward)
 
 
 def bar_lengths(description: RobotDescription) -> NDArray[np.float64]:
@@ -129,9 +121,33 @@ def _solve_normal(
 def rigid_alignment_rms(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> float:
     """RMS distance (m) between points (k, 3) after the best proper rigid motion of
     ``estimate`` onto ``truth`` (Kabsch, no reflection: a mirrored estimate stays off)."""
+    return float(np.sqrt(np.mean(rigid_alignment_errors(estimate, truth) ** 2)))
+
+
+def floor_frame_errors(
+    estimate: NDArray[np.float64], truth: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Each point's distance (m), (k,), from the truth after the best turn about z and
+    shift along the floor of ``estimate`` (k, 3) onto ``truth`` (the floor frame's own
+    freedom): heights and tilt are compared as they are."""
+    R, t = yaw_kabsch(estimate, truth)
+    return np.asarray(np.linalg.norm(estimate @ R.T + t - truth, axis=1))
+
+
+def rigid_alignment_errors(
+    estimate: NDArray[np.float64], truth: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Each point's distance (m), (k,), from the truth after the best proper rigid motion
+    of ``estimate`` (k, 3) onto ``truth``: the constellation's own shape error."""
     R, t = weighted_kabsch(estimate, truth, np.ones(len(estimate)))
-    diff = estimate @ R.T + t - truth
-    return float(np.sqrt(np.mean(np.sum(diff**2, axis=1))))
+    return np.asarray(np.linalg.norm(estimate @ R.T + t - truth, axis=1))
+
+
+def tilt_degrees(estimate: NDArray[np.float64], truth: NDArray[np.float64]) -> float:
+    """Angle (deg) between the up (+z) of ``estimate``'s frame and the truth's, through
+    the best proper rigid motion of the points (k, 3) onto the truth."""
+    R, _ = weighted_kabsch(estimate, truth, np.ones(len(estimate)))
+    return float(np.degrees(np.arccos(np.clip(R[2, 2], -1.0, 1.0))))
 
 
 def signed_volumes(points: NDArray[np.float64], quads: NDArray[np.intp]) -> NDArray[np.float64]:

@@ -42,7 +42,9 @@ def _window_medians(
     out = np.full(n_keys, np.nan)
     order = np.argsort(keys, kind="stable")
     k, v = keys[order], values[order]
-    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]]) if len(k) else np.zeros(0, np.intp)
+    if len(k) == 0:
+        return out
+    starts = np.flatnonzero(np.r_[True, k[1:] != k[:-1]])
     for s, e in zip(starts, np.r_[starts[1:], len(k)], strict=True):
         out[k[s]] = np.median(v[s:e])
     return out

@@ -116,6 +116,8 @@ def _accumulate(
     Hll, gl = np.zeros(S * B * B), np.zeros(S * B)
     Hgg, gg, Hgl = np.zeros(G * G), np.zeros(G), np.zeros(S * G * B)
     for b in blocks:
+        if len(b.residual) == 0:
+            continue  # no rows of this kind (a recording without robot-robot ranges)
         w = robust_weight(b.residual, loss, scale) if b.robust else np.ones_like(b.residual)
         cols, gv = np.maximum(b.global_columns, 0), b.global_values * w[:, None]
         coupled = G > 0 and bool(np.any(b.global_columns >= 0))

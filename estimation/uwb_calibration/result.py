@@ -111,6 +111,13 @@ class CalibrationResult:
     """How the handedness was settled: ``"kept"``, ``"flipped"`` (from the robot's
     shape) or ``"undecided"`` (too few samples show four modules at once)."""
     frame: str = "floor"
+    """``"floor"`` (z up, the floor at z = 0), ``"known"`` (the known anchors' frame) or
+    ``"anchors"`` (no floor found: :meth:`anchors_in_anchor_frame`'s gauge)."""
+    floor: str = "contacts"
+    """How the floor was found: ``"contacts"`` (the robot rested on it), ``"gravity"``
+    (the rods' IMUs; its height then the lowest endcap seen), ``"hint"`` (anchor
+    heights the lab gave), ``"gravity+hint"``, ``"known"`` (the known anchors' frame)
+    or ``"none"`` (see :mod:`~estimation.uwb_calibration.floor`)."""
     wall_time: float = 0.0
     """Seconds the calibration took."""
     extras: dict[str, float] = field(default_factory=dict, compare=False)

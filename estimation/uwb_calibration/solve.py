@@ -40,11 +40,19 @@ if TYPE_CHECKING:
     from estimation.uwb_calibration.rounds import RangeTable
     from tensegrity_gym.model.description import RobotDescription
 
-__all__ = ["Run", "Solved", "floor_gauge", "gauge_mask", "refine", "solve_table"]
+__all__ = [
+    "Run",
+    "Solved",
+    "floor_gauge",
+    "free_gauge",
+    "gauge_mask",
+    "refine",
+    "refine_free",
+    "rested",
+    "solve_table",
+]
 
 logger = logging.getLogger(__name__)
-
-_FIRST_SPAN = 2.0  # s: the first stage's span of the run
 
 
 @dataclass(frozen=True)
@@ -60,6 +68,8 @@ class Run:
     description: RobotDescription
     config: CalibrationConfig
     rng: np.random.Generator
+    on_floor: bool = True
+    """The robot rests on the floor z = 0 (the floor terms); False: a free frame."""
 
 
 @dataclass(frozen=True)
@@ -74,17 +84,38 @@ class Solved:
     """Which start won."""
 
 
-def gauge_mask(n_anchors: int, held: NDArray[np.bool_] | None = None) -> NDArray[np.bool_]:
+def gauge_mask(
+    n_anchors: int, held: NDArray[np.bool_] | None = None, third: int | None = None
+) -> NDArray[np.bool_]:
     """(A, 3) anchor coordinates solved for in the floor frame: all but anchor 0's x, y
     and anchor 1's y (the turn about z and the shift along the floor); with ``held``
-    (A,) anchors given, all of theirs are held and the gauge is theirs instead."""
+    (A,) anchors given, all of theirs are held and the gauge is theirs instead. With
+    ``third`` (no floor: a free frame, :func:`free_gauge`) anchor 0's z, anchor 1's z
+    and anchor ``third``'s z are held too."""
     free = np.ones((n_anchors, 3), dtype=bool)
     if held is not None and held.any():
         free[held] = False
         return free
     free[0, :2] = False
     free[1, 1] = False
+    if third is not None:
+        free[0, 2] = free[1, 2] = free[third, 2] = False
     return free
+
+
+def free_gauge(anchors: NDArray[np.float64]) -> tuple[NDArray[np.float64], int]:
+    """Anchors (A, 3) turned and shifted so that anchor 0 is at the origin, anchor 1
+    on +x and the anchor farthest from their line (returned) in the x-y plane: the
+    gauge of a frame no floor fixes (a proper turn: the handedness is kept)."""
+    a = anchors - anchors[0]
+    x = a[1] / np.linalg.norm(a[1])
+    across = a - np.outer(a @ x, x)
+    third = int(np.argmax(np.linalg.norm(across, axis=1)))
+    y = across[third] / np.linalg.norm(across[third])
+    out = a @ np.stack([x, y, np.cross(x, y)]).T
+    out[0] = 0.0
+    out[1, 1:] = out[third, 2] = 0.0  # exactly, not to the last bit
+    return np.asarray(out), third
 
 
 def floor_gauge(anchors: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -106,7 +137,7 @@ def _stage(
     positions multilaterated and refined alone, then the joint solve, the floor
     contacts re-read before each pass."""
     config, table = run.config, run.table
-    asm = assemble(table, rounds, run.valid, run.description, free, config)
+    asm = assemble(table, rounds, run.valid, run.description, free, config, floor=run.on_floor)
     p = asm.problem
     n = table.n_nodes
     positions = start_positions(p, start.anchors, start.offsets[: table.n_anchors * n])
@@ -152,7 +183,7 @@ def _grow(run: Run, start: JointState) -> JointState:
     """Stages over the first 2, 4, 8, ... s of the run, each from the last."""
     free = gauge_mask(run.table.n_anchors)
     times = run.table.round_times[run.usable] - run.table.round_times[0]
-    span, state = _FIRST_SPAN, start
+    span, state = run.config.first_span, start
     while True:
         within = run.usable[times <= span]
         rounds = _spread(within, run.config.start_samples, run.rng)
@@ -210,11 +241,32 @@ def _reflected(state: JointState) -> JointState:
 
 
 def refine(
-    run: Run, start: JointState, start_index: int = 0, held: NDArray[np.bool_] | None = None
+    run: Run,
+    start: JointState,
+    start_index: int = 0,
+    held: NDArray[np.bool_] | None = None,
+    third: int | None = None,
 ) -> Solved:
     """The final solve from ``start`` on up to ``max_samples`` samples; ``held`` (A,)
-    anchors keep their positions in ``start`` (known anchors)."""
+    anchors keep their positions in ``start`` (known anchors); ``third`` as
+    :func:`gauge_mask` takes it (a free frame)."""
     rounds = _spread(run.usable, run.config.max_samples, run.rng)
-    free = gauge_mask(run.table.n_anchors, held)
+    free = gauge_mask(run.table.n_anchors, held, third)
     asm, state, cost = _stage(run, rounds, free, start, run.config.final_loss)
     return Solved(asm, state, cost, start_index)
+
+
+def rested(solved: Solved, n_nodes: int) -> bool:
+    """Whether the robot of ``solved`` rested on the floor its start assumed: on
+    average at least one endcap a sample touches it (a rolled robot has three; a
+    carried one, whose frame the floor terms only bend, about none)."""
+    floor = solved.assembly.problem.floor
+    return floor is not None and float(np.mean(floor.contact)) >= 1.0 / n_nodes
+
+
+def refine_free(run: Run, solved: Solved) -> Solved:
+    """``solved`` solved again without the floor, in a free frame
+    (:func:`free_gauge`): for a robot that did not rest on the floor (carried)."""
+    anchors, third = free_gauge(solved.state.anchors)
+    start = replace(solved.state, anchors=anchors, positions=np.zeros((0, 3)))
+    return refine(replace(run, on_floor=False), start, solved.start, third=third)

@@ -62,6 +62,31 @@ def _doubts(result: CalibrationResult, config: CalibrationConfig) -> list[str]:
         out.append(f"only {result.n_usable} usable samples")
     if result.mirror == "undecided":
         out.append("handedness undecided (no sample shows four modules of the robot at once)")
+    return out + _floor_doubts(result, config)
+
+
+_HINT = "give anchor heights, e.g. floor hint '0=4.7 1=4.5 2=0.4' (m above the floor)"
+
+
+def _floor_doubts(result: CalibrationResult, config: CalibrationConfig) -> list[str]:
+    """What is doubtful about the floor, with what would settle it."""
+    if result.floor == "none":
+        return [
+            "the floor cannot be told from ranges alone (the robot never rested on it and "
+            f"the recording has no IMU readings along its rods): {_HINT}"
+        ]
+    out = []
+    if result.floor == "gravity":
+        out.append(
+            "the floor's height is a guess (the lowest endcap the robot showed; it never "
+            "rested on the floor): give one anchor's height, e.g. floor hint '0=4.7'"
+        )
+    misfit = result.extras.get("floor_hint_misfit", 0.0)
+    if misfit > config.max_hint_misfit:
+        out.append(
+            f"the hint's anchor heights disagree with the ranges by {1e3 * misfit:.0f} mm RMS "
+            "(a height mistyped, or anchors not where the hint says)"
+        )
     return out
 
 

@@ -57,6 +57,7 @@ from tensegrity_gym.sim.engines import DEFAULT_ENGINE
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
     from pathlib import Path
 
     from numpy.typing import NDArray
@@ -65,6 +66,7 @@ if TYPE_CHECKING:
     from estimation.uwb_calibration.trust import RangeFit
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.model.protocols import UwbCalibration
+    from tensegrity_gym.model.samples import ImuSample
     from tensegrity_gym.sim.sensors import UwbModel
 
 __all__ = [
@@ -143,11 +145,18 @@ def onto_layout(anchors: NDArray[np.float64], layout: NDArray[np.float64]) -> ND
 
 
 def lab_calibration(
-    samples: list[UwbRangeSample], description: RobotDescription, seed: int
+    samples: Sequence[UwbRangeSample | ImuSample],
+    description: RobotDescription,
+    seed: int,
+    floor_hint: str | None = None,
 ) -> CalibrationResult:
-    """The calibrator's result on ``samples``, its anchors fitted onto the lab's floor
-    plan (:func:`onto_layout`), its starts drawn from ``seed``."""
-    result = calibrate_samples(samples, description, rng=np.random.default_rng(seed))
+    """The calibrator's result on ``samples`` (UWB rounds, and the IMUs' readings that
+    tell the floor of a carried robot), its anchors fitted onto the lab's floor plan
+    (:func:`onto_layout`), its starts drawn from ``seed``; ``floor_hint`` as
+    :func:`~estimation.uwb_calibration.calibrate_ranges` takes it."""
+    result = calibrate_samples(
+        samples, description, rng=np.random.default_rng(seed), floor_hint=floor_hint
+    )
     return replace(result, anchors=onto_layout(result.anchors, description.anchors))
 
 

@@ -14,6 +14,8 @@ from tensegrity_gym.model.lie import quat_rotate
 if TYPE_CHECKING:
     from numpy.typing import ArrayLike, NDArray
 
+    from tensegrity_gym.model.description import RobotDescription
+
 __all__ = [
     "center_of_mass",
     "member_lengths",
@@ -21,6 +23,7 @@ __all__ = [
     "rod_centres",
     "rod_node_states",
     "rod_quaternion_from_axis",
+    "uwb_module_positions",
     "weighted_kabsch",
     "yaw_kabsch",
 ]
@@ -49,6 +52,18 @@ def rod_axes(
     """Unit vectors from each rod's first node to its second: (..., n, 3) -> (..., r, 3)."""
     u = node_positions[..., rod_nodes[:, 1], :] - node_positions[..., rod_nodes[:, 0], :]
     return np.asarray(u / np.linalg.norm(u, axis=-1, keepdims=True))
+
+
+def uwb_module_positions(
+    description: RobotDescription, nodes: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Robot UWB module positions (..., n, 3) for node positions (..., n, 3): each sits
+    ``sensors.uwb.module_offset`` m from its endcap centre toward the rod centre."""
+    rn = description.rod_nodes
+    centres = 0.5 * (nodes[..., rn[:, 0], :] + nodes[..., rn[:, 1], :])
+    toward = centres[..., description.node_rod, :] - nodes
+    toward /= np.linalg.norm(toward, axis=-1, keepdims=True)
+    return np.asarray(nodes + description.sensors.uwb.module_offset * toward)
 
 
 def center_of_mass(

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import imufusion
 import numpy as np
 
-from tensegrity_gym.model.kinematics import member_lengths
+from tensegrity_gym.model.kinematics import member_lengths, uwb_module_positions
 from tensegrity_gym.model.lie import quat_conjugate, quat_rotate
 from tensegrity_gym.model.samples import (
     AhrsSample,
@@ -278,7 +278,6 @@ class UwbModel:
         # Anchors initiate, robot modules compute: one measurement per anchor pair.
         anchor = [(n + a, j) for a in range(len(anchors)) for j in range(n)]
         self.pairs = np.array(robot + anchor, dtype=np.intp).reshape(-1, 2)
-        # Unit vector from each node toward its rod centre, for the module offset.
         self.offsets = np.zeros((self.n_modules, self.n_modules))
         self.drift = np.zeros(self.n_modules)
         self.reject_fraction = 0.0
@@ -300,13 +299,7 @@ class UwbModel:
 
     def module_positions(self, nodes: NDArray[np.float64]) -> NDArray[np.float64]:
         """Positions of all modules (n_modules, 3) for node positions (n, 3)."""
-        d = self.description
-        rn = d.rod_nodes
-        centres = 0.5 * (nodes[rn[:, 0]] + nodes[rn[:, 1]])
-        toward = centres[d.node_rod] - nodes
-        toward /= np.linalg.norm(toward, axis=1, keepdims=True)
-        robot = nodes + self.config.module_offset * toward
-        return np.concatenate([robot, self.anchors])
+        return np.concatenate([uwb_module_positions(self.description, nodes), self.anchors])
 
     def sample(self, snaps: Sequence[Snapshot], rng: np.random.Generator) -> list[UwbRangeSample]:
         c = self.config

@@ -342,7 +342,7 @@ def test_save_load_round_trip(tmp_path: Path, calibrated: CalibrationResult) -> 
             r"anchors: expected shape \(k, 3\), got \(1, 2\)$",
         ),
         (lambda d: d["offsets"][0].__setitem__(1, 9.0), r"offsets: must be symmetric"),
-        (lambda d: d.update(frame="lab"), r"frame: expected 'floor' or 'known'"),
+        (lambda d: d.update(frame="lab"), r"frame: expected one of floor, known, anchors"),
         (lambda d: d["result"].pop("verdict"), r"result.verdict: missing field$"),
     ],
 )
