@@ -18,6 +18,7 @@ from agents.cli.arguments import (
     env_help,
     non_negative_float,
     port,
+    positive_float,
     positive_int,
 )
 from agents.cli.errors import log, one_line, terminate
@@ -190,6 +191,32 @@ def run_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_import(imp: argparse.ArgumentParser) -> None:
+    """``import``'s options: the lab's files, its map, its robot, the bag to write."""
+    imp.add_argument("sources", nargs="+",
+                     help="the lab's CSV logs and ranges files, or a folder of them")  # fmt: skip
+    imp.add_argument("--map", default=None,
+                     help="the lab map (YAML: each file's kind, columns, units; the UWB ids); "
+                     "default: the folder's map.yaml")  # fmt: skip
+    imp.add_argument("--robot", default=None, help="robot preset or YAML (default: the map's)")
+    imp.add_argument("--calibration", default=None,
+                     help="a UWB calibration file for the bag (default: nominal)")  # fmt: skip
+    imp.add_argument("--control-period", type=positive_float, default=None,
+                     help="s between commands (default: the commands log's, else 0.1)")  # fmt: skip
+    imp.add_argument("--out", required=True, help="the bag folder to write (new)")
+
+
+def run_import(args: argparse.Namespace) -> int:
+    """``import``: write the lab's recording as a bag; print what was written."""
+    from agents.recordings.importing import import_command
+
+    line = import_command(args.sources, lab_map=args.map, robot=args.robot, out=args.out,
+                          calibration=args.calibration,
+                          control_period=args.control_period)  # fmt: skip
+    sys.stdout.write(line + "\n")
+    return 0
+
+
 def add_view(v: argparse.ArgumentParser) -> None:
     """``view``'s options: the simulation (or the bag) streamed, the port, the pace."""
     from hardware.viewer import DEFAULT_PORT
@@ -236,6 +263,12 @@ COMMANDS = (
         "calibrate the UWB anchors and offsets from a recorded run of the robot moving",
         add_calibrate,
         run_calibrate,
+    ),
+    Command(
+        "import",
+        "write a lab's recording (CSV logs, ranges files; a lab map) as a bag",
+        add_import,
+        run_import,
     ),
     Command(
         "view",

@@ -8,7 +8,9 @@ ignored; NPZ: arrays of these names, each (k,)):
 - ``anchor``: the lab's id of the other module: an anchor, or, where the lab's robot
   ranges itself, another robot module;
 - ``range``: the uncorrected range (m, or the map's ``range`` unit): true distance
-  plus the pair's offset plus noise (Caluwaerts et al. 2016 eq. 6-7).
+  plus the pair's offset plus noise (Caluwaerts et al. 2016 eq. 6-7);
+- ``stamp`` (optional): the time of the message the range came in; ranges of one
+  stamp become one ``UwbRangeSample`` (without it, one per 0.1 s).
 
 **Id map** (YAML), from the lab's ids to the description's::
 
@@ -17,7 +19,7 @@ ignored; NPZ: arrays of these names, each (k,)):
       "13": n1
     anchors:          # lab id -> anchor index (the description's sensors.uwb.anchors)
       "101": 0
-    units: {time: s, range: m}   # optional: s|ms|us|ns and m|cm|mm
+    units: {time: s, range: m}   # optional: s|ms|us|ns and m|cm|mm (the range's)
 
 Without a map, ids are the description's module ids (``UwbRangeSample``: nodes
 0..n-1, anchors n..n+A-1). Rows whose id the map does not name are left out, with
@@ -30,17 +32,17 @@ from __future__ import annotations
 import csv
 import logging
 from dataclasses import dataclass
-from decimal import Decimal, InvalidOperation
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import yaml
 
+from hardware.lab.table import LabFileError, nanoseconds, read_table, read_yaml, unit_scale
 from tensegrity_gym.model.samples import UwbRangeSample, ns_to_seconds, seconds_to_ns
 
 if TYPE_CHECKING:
     import os
+    from collections.abc import Sequence
 
     from numpy.typing import NDArray
 
@@ -49,8 +51,8 @@ if TYPE_CHECKING:
 __all__ = [
     "COLUMNS",
     "IdMap",
-    "LabFileError",
     "RangeRows",
+    "id_map_from_doc",
     "identity_map",
     "load_id_map",
     "read_ranges",
@@ -60,14 +62,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 COLUMNS = ("t", "node", "anchor", "range")
-TIME_UNITS = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
-RANGE_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+STAMP = "stamp"
+"""The optional column of the time of the message (sample) a range came in."""
 SUFFIXES = (".csv", ".npz")
-
-
-class LabFileError(ValueError):
-    """A lab's file or id map cannot be read; one line naming the file (and the field,
-    or the line)."""
 
 
 @dataclass(frozen=True)
@@ -108,22 +105,15 @@ def _anchor_index(value: Any, description: RobotDescription, where: str) -> int:
     )
 
 
-def _unit(units: dict[str, Any], key: str, table: dict[str, float], where: str) -> float:
-    name = units.get(key, next(iter(table)))
-    if name not in table:
-        raise LabFileError(f"{where}.{key}: {name!r} is not one of {', '.join(table)}")
-    return table[name]
-
-
 def load_id_map(path: str | os.PathLike[str], description: RobotDescription) -> IdMap:
     """The id map in ``path`` (YAML, see the module's doc) for ``description``."""
     source = str(path)
-    try:
-        doc = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise LabFileError(f"{source}: no such file") from None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as err:
-        raise LabFileError(f"{source}: not a YAML id map: {str(err).splitlines()[0]}") from None
+    doc = read_yaml(path, "id map")
+    return id_map_from_doc(doc, description, source)
+
+
+def id_map_from_doc(doc: Any, description: RobotDescription, source: str) -> IdMap:
+    """An id map from its parsed YAML ``doc``; errors name ``source`` and the field."""
     if not isinstance(doc, dict) or not {"nodes", "anchors"} <= doc.keys():
         raise LabFileError(f"{source}: an id map is a mapping with 'nodes' and 'anchors'")
     unknown = sorted(set(doc) - {"nodes", "anchors", "units"})
@@ -143,8 +133,8 @@ def load_id_map(path: str | os.PathLike[str], description: RobotDescription) -> 
         raise LabFileError(f"{source}: units: expected a mapping (time, range)")
     return IdMap(
         modules,
-        _unit(units, "time", TIME_UNITS, f"{source}: units"),
-        _unit(units, "range", RANGE_UNITS, f"{source}: units"),
+        unit_scale(units, "time", f"{source}: units"),
+        unit_scale({"length": units.get("range", "m")}, "length", f"{source}: units"),
     )
 
 
@@ -153,7 +143,7 @@ class RangeRows:
     """The ranges of a lab's file, in the description's module ids."""
 
     t: NDArray[np.float64]
-    """(k,) s from :attr:`clock_origin_ns`, sorted."""
+    """(k,) s from :attr:`clock_origin_ns`, sorted (by message, where the file has them)."""
     module_i: NDArray[np.intp]
     module_j: NDArray[np.intp]
     """(k,) the two module ids of each range (``UwbRangeSample``'s)."""
@@ -161,24 +151,32 @@ class RangeRows:
     """(k,) m."""
     clock_origin_ns: int
     """The file's time of t = 0 (ns on its clock)."""
+    stamp: NDArray[np.float64] | None = None
+    """(k,) s: the time of the message each range came in, where the file says."""
 
     def samples(self, period: float = 0.1) -> list[UwbRangeSample]:
-        """The rows gathered into one ``UwbRangeSample`` per ``period`` s (stamped at
-        the period's end), as a lab's ROS node gathers them."""
-        bins = np.floor(self.t / period).astype(np.intp)
-        cut = np.flatnonzero(np.diff(bins)) + 1
+        """One ``UwbRangeSample`` per message where the file has a ``stamp`` column;
+        else the rows gathered into one per ``period`` s (stamped at its end), as a
+        lab's ROS node gathers them."""
+        if self.stamp is not None:
+            cut = np.flatnonzero(np.diff(self.stamp)) + 1
+            stamps = self.stamp
+        else:
+            bins = np.floor(self.t / period).astype(np.intp)
+            cut = np.flatnonzero(np.diff(bins)) + 1
+            stamps = np.array([ns_to_seconds(seconds_to_ns((b + 1) * period)) for b in bins])
         out = []
         for rows in np.split(np.arange(len(self.t)), cut):
             if len(rows) == 0:
                 continue
-            stamp = ns_to_seconds(seconds_to_ns((bins[rows[0]] + 1) * period))
             pairs = np.column_stack([self.module_j[rows], self.module_i[rows]])
-            out.append(UwbRangeSample(stamp, self.t[rows].copy(), pairs, self.ranges[rows].copy()))
+            out.append(UwbRangeSample(float(stamps[rows[0]]), self.t[rows].copy(), pairs,
+                                      self.ranges[rows].copy()))  # fmt: skip
         return out
 
 
 def _columns(path: Path) -> dict[str, NDArray[Any]]:
-    """The file's four columns (ids as text), raw."""
+    """The file's columns (ids as text, ranges as numbers; ``stamp`` where it has one)."""
     if path.suffix.lower() == ".npz":
         try:
             with np.load(path, allow_pickle=False) as z:
@@ -187,7 +185,7 @@ def _columns(path: Path) -> dict[str, NDArray[Any]]:
                     raise LabFileError(
                         f"{path}: no array {missing[0]!r} (needs {', '.join(COLUMNS)})"
                     )
-                cols = {c: np.asarray(z[c]) for c in COLUMNS}
+                cols = {c: np.asarray(z[c]) for c in (*COLUMNS, STAMP) if c in z.files}
         except (OSError, ValueError) as err:
             if isinstance(err, LabFileError):
                 raise
@@ -196,52 +194,10 @@ def _columns(path: Path) -> dict[str, NDArray[Any]]:
         if len(set(lengths.values())) != 1 or cols["t"].ndim != 1:
             raise LabFileError(f"{path}: the arrays must be 1-D of one length: {lengths}")
         return cols | {k: cols[k].astype(str) for k in ("node", "anchor")}
-    return _csv_columns(path)
-
-
-def _csv_columns(path: Path) -> dict[str, NDArray[Any]]:
-    try:
-        with path.open(newline="", encoding="utf-8") as f:
-            reader = csv.reader(f)
-            header = [h.strip() for h in next(reader, [])]
-            missing = [c for c in COLUMNS if c not in header]
-            if missing:
-                raise LabFileError(
-                    f"{path}: line 1: no column {missing[0]!r} (the header must name "
-                    f"{', '.join(COLUMNS)})"
-                )
-            at = [header.index(c) for c in COLUMNS]
-            rows = [(k + 2, row) for k, row in enumerate(reader) if row]
-    except UnicodeDecodeError:
-        raise LabFileError(f"{path}: not a CSV text file") from None
-    except OSError as err:
-        raise LabFileError(f"{path}: cannot be read: {err.strerror}") from None
-    values: dict[str, list[Any]] = {c: [] for c in COLUMNS}
-    for line, row in rows:
-        if len(row) < len(header):
-            raise LabFileError(
-                f"{path}: line {line}: {len(row)} fields, the header has {len(header)}"
-            )
-        for c, k in zip(COLUMNS, at, strict=True):
-            values[c].append(row[k].strip())
-    out = {c: np.asarray(values[c], dtype=str) for c in ("node", "anchor")}
-    for c in ("t", "range"):
-        try:
-            out[c] = np.asarray(values[c] or [], dtype=np.float64)
-        except ValueError:
-            bad = next(k for k, v in enumerate(values[c]) if not _is_number(v))
-            raise LabFileError(
-                f"{path}: line {rows[bad][0]}: {c} {values[c][bad]!r} is not a number"
-            ) from None
-    return out
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
+    table = read_table(path, COLUMNS, (STAMP,))
+    cols = dict(table.columns)
+    cols["range"] = table.numbers("range")
+    return cols
 
 
 def read_ranges(
@@ -276,34 +232,29 @@ def read_ranges(
             )
         logger.warning("%s: %d rows with ids the map does not name left out (%s)", p,
                        int(np.count_nonzero(~known)), ", ".join(strange[:8]))  # fmt: skip
-    ns = _nanoseconds(cols["t"], ids.time_scale)
+    ns = nanoseconds(cols["t"], ids.time_scale)
+    message = nanoseconds(cols[STAMP], ids.time_scale) if STAMP in cols else None
     m = cols["range"].astype(np.float64) * ids.range_scale
     keep = known & np.array([x is not None for x in ns], dtype=bool) & np.isfinite(m)
+    if message is not None:
+        keep &= np.array([x is not None for x in message], dtype=bool)
     if not keep.any():
         raise LabFileError(f"{p}: no row with a finite time and range")
     stamps = np.array([x for x, k in zip(ns, keep, strict=True) if k], dtype=np.int64)
     node, other, m = node[keep], other[keep], m[keep]
-    order = np.argsort(stamps, kind="stable")
     origin_ns = int(stamps.min()) // 1_000_000_000 * 1_000_000_000
+    # By message (the file's order within one), else by time.
+    sent = (
+        None if message is None
+        else np.array([x for x, k in zip(message, keep, strict=True) if k], dtype=np.int64)
+    )  # fmt: skip
+    order = np.argsort(stamps if sent is None else sent, kind="stable")
     # Times on whole nanoseconds from the origin's second, as a bag keeps them.
     rel = np.array([ns_to_seconds(int(x) - origin_ns) for x in stamps[order]])
-    return RangeRows(rel, node[order], other[order], m[order], origin_ns)
-
-
-def _nanoseconds(column: NDArray[Any], scale: float) -> list[int | None]:
-    """Each time of ``column`` (text or numbers, in units of ``scale`` s) in whole
-    nanoseconds, exactly where the file writes it exactly (``1465000000250`` ms is
-    not rounded through a float); None where it is not finite."""
-    per_unit = Decimal(repr(scale)) * 1_000_000_000
-    out: list[int | None] = []
-    for x in column.tolist():
-        try:
-            value = Decimal(str(x))
-        except InvalidOperation:
-            out.append(None)
-            continue
-        out.append(int((value * per_unit).to_integral_value()) if value.is_finite() else None)
-    return out
+    stamp = (
+        None if sent is None else np.array([ns_to_seconds(int(x) - origin_ns) for x in sent[order]])
+    )
+    return RangeRows(rel, node[order], other[order], m[order], origin_ns, stamp)
 
 
 def _plain(x: Any) -> str:
@@ -316,22 +267,41 @@ def _plain(x: Any) -> str:
     return str(int(value)) if value.is_integer() else text
 
 
-def write_ranges(path: str | os.PathLike[str], samples: list[UwbRangeSample],
-                 n_nodes: int) -> None:  # fmt: skip
+def write_ranges(
+    path: str | os.PathLike[str],
+    samples: Sequence[UwbRangeSample],
+    n_nodes: int,
+    *,
+    clock_origin_ns: int | None = None,
+) -> None:
     """``samples``' robot-anchor and robot-robot ranges as a ranges file (CSV or NPZ by
-    ``path``'s suffix) in the module ids of ``UwbRangeSample`` (no id map needed)."""
-    t = np.concatenate([np.asarray(s.times, dtype=np.float64) for s in samples])
-    pairs = np.concatenate([np.asarray(s.pairs, dtype=np.intp).reshape(-1, 2) for s in samples])
-    m = np.concatenate([np.asarray(s.ranges, dtype=np.float64) for s in samples])
-    # The robot's module first: it is the row's node.
-    node, other = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
-    keep = node < n_nodes
+    ``path``'s suffix) in the module ids of ``UwbRangeSample`` (no id map needed), with
+    each sample's time as the ``stamp`` column. Times in s as the samples have them, or
+    with ``clock_origin_ns`` in whole ns on the recording's clock (``units: {time: ns}``:
+    exact, whatever the clock)."""
+    rows = [(s.t, tk, int(a), int(b), float(r)) for s in samples
+            for tk, (a, b), r in zip(s.times, np.asarray(s.pairs).reshape(-1, 2), s.ranges,
+                                     strict=True)]  # fmt: skip
+    # The computing robot module is the row's node (the responder of UwbRangeSample's
+    # pair), the initiator its anchor: the pair's order survives the trip.
+    rows = [r if r[3] < n_nodes else (r[0], r[1], r[3], r[2], r[4]) for r in rows]
+    rows = [r for r in rows if r[3] < n_nodes]
+
+    def time(x: float) -> Any:
+        return repr(float(x)) if clock_origin_ns is None else clock_origin_ns + seconds_to_ns(x)
+
     p = Path(path)
     if p.suffix.lower() == ".npz":
-        np.savez_compressed(p, t=t[keep], node=node[keep], anchor=other[keep], range=m[keep])
+        kind = np.float64 if clock_origin_ns is None else np.int64
+        np.savez_compressed(
+            p, t=np.array([time(r[1]) for r in rows], dtype=kind),
+            node=np.array([r[3] for r in rows]), anchor=np.array([r[2] for r in rows]),
+            range=np.array([r[4] for r in rows]),
+            stamp=np.array([time(r[0]) for r in rows], dtype=kind),
+        )  # fmt: skip
         return
     with p.open("w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
-        w.writerow(COLUMNS)
-        for row in zip(t[keep], node[keep], other[keep], m[keep], strict=True):
-            w.writerow((repr(float(row[0])), int(row[1]), int(row[2]), repr(float(row[3]))))
+        w.writerow((*COLUMNS, STAMP))
+        for stamp, t, anchor, node, r in rows:
+            w.writerow((time(t), node, anchor, repr(r), time(stamp)))
