@@ -1,7 +1,8 @@
 """A lab's recording written as this project's bag, so that the rest of the toolchain
 (``estimate``, ``calibrate``, ``identify``, ``driver="bag:PATH"``) applies unchanged.
 
-**The lab map** (YAML) says what each of the lab's files is::
+**The lab map** (YAML) says what each of the lab's files, or each topic of its ROS 1 or
+ROS 2 bag (:mod:`hardware.lab.topics`), is::
 
     robot: superball        # optional: the description (a preset or a YAML path)
     ids:                    # the UWB ids, as hardware.lab.ranges' id map
@@ -11,6 +12,8 @@
       imu.csv: {kind: imu, units: {time: ms, accel: g, gyro: deg/s}}
       motors.csv: {kind: encoders, units: {time: ms, length: mm}}
       ranges.csv: {kind: uwb, units: {time: ms, length: mm}}
+    topics:                 # a bag's topics (hardware.lab.topics)
+      /red/imu: {kind: imu, rod: red}
 
 Every file of a recording shares one clock; the bag's clock origin is its first
 sample's whole second. **Commands**: a ``commands`` log where the lab has one (the
@@ -20,7 +23,8 @@ encoders' last reading, held (what the motors were holding), and the run info sa
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -28,13 +32,14 @@ import numpy as np
 
 from hardware.bag.writer import BagWriter
 from hardware.lab.logs import KINDS, LogSpec, read_log
-from hardware.lab.ranges import IdMap, id_map_from_doc, identity_map, read_ranges
+from hardware.lab.ranges import IdMap, RangeRows, id_map_from_doc, identity_map, read_ranges
 from hardware.lab.table import LabFileError, read_yaml
+from hardware.lab.topics import TopicSpec, is_ros_bag, read_topics, topic_spec
 from tensegrity_gym.model.samples import EncoderSample, ns_to_seconds, seconds_to_ns
 
 if TYPE_CHECKING:
     import os
-    from collections.abc import Sequence
+    from collections.abc import Callable, Sequence
 
     from numpy.typing import NDArray
 
@@ -50,13 +55,21 @@ DEFAULT_CONTROL_PERIOD = 0.1
 
 @dataclass(frozen=True)
 class LabMap:
-    """What a lab map (YAML) says: its robot, its UWB ids, its files."""
+    """What a lab map (YAML) says: its robot, its UWB ids, its files and bag topics."""
 
     robot: str | None
     ids: dict[str, Any] | None
     """The ``ids`` section as written (resolved against a description when read)."""
     files: dict[str, LogSpec]
     source: str
+    topics: dict[str, TopicSpec] = field(default_factory=dict)
+    """A ROS 1 or ROS 2 bag's topics (:mod:`hardware.lab.topics`)."""
+
+    def id_map(self, description: RobotDescription) -> IdMap:
+        """The UWB ids resolved against ``description`` (its module ids without any)."""
+        if self.ids is None:
+            return identity_map(description)
+        return id_map_from_doc(self.ids, description, f"{self.source}: ids")
 
 
 def load_lab_map(path: str | os.PathLike[str]) -> LabMap:
@@ -68,20 +81,31 @@ def load_lab_map(path: str | os.PathLike[str]) -> LabMap:
     """
     source = str(path)
     doc = read_yaml(path, "lab map")
-    if not isinstance(doc, dict) or not isinstance(doc.get("files"), dict) or not doc["files"]:
-        raise LabFileError(f"{source}: a lab map is a mapping with 'files' (file name -> kind)")
-    unknown = sorted(set(doc) - {"robot", "ids", "files"})
+    sections = ("files", "topics")
+    if not isinstance(doc, dict) or not any(
+        isinstance(doc.get(k), dict) and doc[k] for k in sections
+    ):
+        raise LabFileError(
+            f"{source}: a lab map is a mapping with 'files' (file name -> kind) or 'topics' "
+            "(a bag's topic -> kind)"
+        )
+    unknown = sorted(set(doc) - {"robot", "ids", *sections})
     if unknown:
-        raise LabFileError(f"{source}: {unknown[0]}: unknown field (robot, ids, files)")
+        raise LabFileError(f"{source}: {unknown[0]}: unknown field (robot, ids, files, topics)")
+    for k in sections:
+        if not isinstance(doc.get(k) or {}, dict):
+            raise LabFileError(f"{source}: {k}: expected a mapping")
     files = {
-        str(name): _log_spec(entry, f"{source}: files.{name}")
-        for name, entry in doc["files"].items()
+        str(n): _log_spec(e, f"{source}: files.{n}") for n, e in (doc.get("files") or {}).items()
+    }
+    topics = {
+        str(n): topic_spec(e, f"{source}: topics.{n}") for n, e in (doc.get("topics") or {}).items()
     }
     ids = doc.get("ids")
     if ids is not None and not isinstance(ids, dict):
         raise LabFileError(f"{source}: ids: expected a mapping (nodes, anchors)")
     robot = doc.get("robot")
-    return LabMap(None if robot is None else str(robot), ids, files, source)
+    return LabMap(None if robot is None else str(robot), ids, files, source, topics)
 
 
 def _log_spec(entry: Any, where: str) -> LogSpec:
@@ -112,64 +136,79 @@ class LabRecording:
     """The files' clock at t = 0: the first sample's whole second."""
 
 
-def _files(paths: Sequence[Path], lab_map: LabMap) -> list[tuple[Path, LogSpec]]:
-    """The files to read: those given, or for a folder those of the map in it."""
-    out: list[tuple[Path, LogSpec]] = []
-    for p in paths:
-        if p.is_dir():
-            named = [
-                (p / name, spec) for name, spec in lab_map.files.items() if (p / name).is_file()
-            ]
-            if not named:
-                raise LabFileError(f"{p}: holds none of the files {lab_map.source} names")
-            out += named
-        elif p.name in lab_map.files:
-            out.append((p, lab_map.files[p.name]))
-        else:
-            raise LabFileError(
-                f"{p}: not one of the files {lab_map.source} names ({', '.join(lab_map.files)})"
-            )
-    return out
+def _files(path: Path, lab_map: LabMap) -> list[tuple[Path, LogSpec]]:
+    """The files to read at ``path``: the file itself, or a folder's files the map names."""
+    if path.is_dir():
+        named = [(path / n, spec) for n, spec in lab_map.files.items() if (path / n).is_file()]
+        if not named:
+            raise LabFileError(f"{path}: holds none of the files {lab_map.source} names")
+        return named
+    if path.name in lab_map.files:
+        return [(path, lab_map.files[path.name])]
+    raise LabFileError(
+        f"{path}: not one of the files {lab_map.source} names ({', '.join(lab_map.files)})"
+    )
+
+
+Entry = tuple[int, str, "Callable[[int], list[Sample]]"]
+"""(time ns on the recording's clock, kind, the recording's origin ns -> its samples)."""
+
+
+def _entries(
+    path: Path, lab_map: LabMap, description: RobotDescription
+) -> tuple[list[Entry], list[RangeRows]]:
+    """What ``path`` holds: timed entries, and ranges files (timed on their own)."""
+    if is_ros_bag(path):
+        if not lab_map.topics:
+            raise LabFileError(f"{path}: a bag, and {lab_map.source} names no topics")
+        return read_topics(path, lab_map.topics, description, lab_map.id_map(description)), []
+    entries: list[Entry] = []
+    ranges: list[RangeRows] = []
+    for file, spec in _files(path, lab_map):
+        if spec.kind == "uwb":
+            ids = lab_map.id_map(description)
+            ids = IdMap(ids.modules, spec.scale("time", str(file)), spec.scale("length", str(file)))
+            ranges.append(read_ranges(file, description, ids))
+            continue
+        timed = read_log(file, spec, description)
+        entries += [
+            (int(ns), spec.kind, partial(_one, timed.make, k, int(ns)))
+            for k, ns in enumerate(timed.ns)
+        ]
+    return entries, ranges
+
+
+def _one(make: Callable[[float, int], Sample], k: int, ns: int, origin_ns: int) -> list[Sample]:
+    return [make(ns_to_seconds(ns - origin_ns), k)]
 
 
 def read_recording(
     paths: Sequence[str | os.PathLike[str]], lab_map: LabMap, description: RobotDescription
 ) -> LabRecording:
-    """Every file of ``paths`` (files the map names, or folders holding them) read and
-    put on one clock."""
-    stamped: list[tuple[NDArray[np.int64], Any, str]] = []
-    for path, spec in _files([Path(p) for p in paths], lab_map):
-        if spec.kind == "uwb":
-            where = f"{lab_map.source}: ids"
-            ids = (
-                id_map_from_doc(lab_map.ids, description, where)
-                if lab_map.ids
-                else identity_map(description)
-            )
-            ids = IdMap(ids.modules, spec.scale("time", str(path)), spec.scale("length", str(path)))
-            rows = read_ranges(path, description, ids)
-            stamped.append((np.array([rows.clock_origin_ns]), rows, "uwb"))
-        else:
-            timed = read_log(path, spec, description)
-            stamped.append((timed.ns, timed, spec.kind))
-    firsts = [int(ns.min()) for ns, _, _ in stamped if len(ns)]
+    """Every file of ``paths`` (files the map names, folders holding them, ROS 1 or
+    ROS 2 bags whose topics it names) read and put on one clock."""
+    entries: list[Entry] = []
+    ranges: list[RangeRows] = []
+    for p in paths:
+        more, files = _entries(Path(p), lab_map, description)
+        entries += more
+        ranges += files
+    firsts = [e[0] for e in entries] + [r.clock_origin_ns for r in ranges]
     if not firsts:
         raise LabFileError(f"{', '.join(map(str, paths))}: no sample in the files")
     origin = min(firsts) // 1_000_000_000 * 1_000_000_000
     samples: list[Sample] = []
     commands: list[tuple[float, NDArray[np.float64]]] = []
-    for ns, data, kind in stamped:
-        if kind == "uwb":
-            shift = ns_to_seconds(data.clock_origin_ns - origin)
-            samples += [_shifted(s, shift) for s in data.samples()]
-            continue
-        for k, x in enumerate(ns.tolist()):
-            sample = data.make(ns_to_seconds(int(x) - origin), k)
+    for _, kind, make in entries:
+        for sample in make(origin):
             if kind == "commands":
-                commands.append((sample.t, sample.rest_lengths))
+                commands.append((sample.t, sample.rest_lengths))  # type: ignore[union-attr]
             else:
                 samples.append(sample)
-    samples.sort(key=lambda s: s.t)  # stable: each log's own order kept at equal times
+    for file in ranges:
+        shift = ns_to_seconds(file.clock_origin_ns - origin)
+        samples += [_shifted(s, shift) for s in file.samples()]
+    samples.sort(key=lambda s: s.t)  # stable: each source's own order kept at equal times
     commands.sort(key=lambda c: c[0])
     return LabRecording(samples, commands, origin)
 

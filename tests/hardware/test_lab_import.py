@@ -147,3 +147,140 @@ def test_import_from_the_command_line(exported: Path, tmp_path: Path) -> None:
         assert reader.description.name == "three_bar"
         assert reader.run_info["commands"] == "recorded"
     assert main(["import", str(exported), "--out", str(out)]) == 2  # exists
+
+
+UWB_MSG = """std_msgs/Header header
+uint8[] initiator
+uint8[] responder
+float64[] distance
+time[] stamps
+"""
+
+
+def _ros1_bag(path: Path, recorded: Path) -> None:
+    """The recording as a lab's ROS 1 bag: its own topic names, standard types (lengths
+    in mm), and a UWB message of its own."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    samples, commands, reader = _contents(recorded)
+    d = reader.description
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg(UWB_MSG, "lab_msgs/msg/Ranges"))
+    T = store.types
+    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+    V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    names = [d.cables[k].name for k in d.actuated]
+
+    def stamp(t: float) -> object:
+        ns = round(t * 1e9)
+        return Time(sec=ns // 10**9, nanosec=ns % 10**9)
+
+    def imu(t: float, q: np.ndarray, a: np.ndarray, w: np.ndarray) -> object:
+        zero = np.zeros(9)
+        return T["sensor_msgs/msg/Imu"](
+            header=Header(seq=0, stamp=stamp(t), frame_id=""),
+            orientation=Q(x=q[0], y=q[1], z=q[2], w=q[3]), orientation_covariance=zero,
+            angular_velocity=V3(x=w[0], y=w[1], z=w[2]), angular_velocity_covariance=zero,
+            linear_acceleration=V3(x=a[0], y=a[1], z=a[2]), linear_acceleration_covariance=zero,
+        )  # fmt: skip
+
+    def joints(t: float, values: np.ndarray) -> object:
+        return T["sensor_msgs/msg/JointState"](
+            header=Header(seq=0, stamp=stamp(t), frame_id=""), name=names[::-1],
+            position=1e3 * values[::-1], velocity=np.zeros(0), effort=np.zeros(0),
+        )  # the lab's order, not the description's; millimetres  # fmt: skip
+
+    def floats(values: np.ndarray) -> object:
+        layout = T["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
+        return T["std_msgs/msg/Float64MultiArray"](layout=layout, data=values.astype(np.float64))
+
+    out: list[tuple[str, str, int, object]] = []
+    for s in samples:
+        ns = round(s.t * 1e9)
+        kind = type(s).__name__
+        if kind == "ImuSample":
+            msg = imu(s.t, np.array([0.0, 0, 0, 1]), s.accel, s.gyro)
+            out.append((f"/{d.rods[s.rod].name}/imu", "sensor_msgs/msg/Imu", ns, msg))
+        elif kind == "AhrsSample":
+            msg = imu(s.t, s.quaternion, np.zeros(3), np.zeros(3))
+            out.append((f"/{d.rods[s.rod].name}/ahrs", "sensor_msgs/msg/Imu", ns, msg))
+        elif kind == "EncoderSample":
+            out.append(("/motors", "sensor_msgs/msg/JointState", ns, joints(s.t, s.rest_lengths)))
+        elif kind == "CableLengthSample":
+            out.append(("/strain", "std_msgs/msg/Float64MultiArray", ns, floats(s.lengths)))
+        elif kind == "ContactSample":
+            out.append(("/feet", "std_msgs/msg/Float64MultiArray", ns, floats(s.in_contact)))
+        elif kind == "UwbRangeSample":
+            pairs = np.asarray(s.pairs)
+            msg = T["lab_msgs/msg/Ranges"](
+                header=Header(seq=0, stamp=stamp(s.t), frame_id=""),
+                initiator=pairs[:, 0].astype(np.uint8), responder=pairs[:, 1].astype(np.uint8),
+                distance=np.asarray(s.ranges), stamps=[stamp(x) for x in s.times],
+            )  # fmt: skip
+            out.append(("/uwb", "lab_msgs/msg/Ranges", ns, msg))
+    for t, c in commands:
+        out.append(("/motors/target", "sensor_msgs/msg/JointState", round(t * 1e9), joints(t, c)))
+    with Writer(path) as bag:
+        conns: dict[str, object] = {}
+        for topic, msgtype, ns, msg in sorted(out, key=lambda m: m[2]):
+            if topic not in conns:
+                conns[topic] = bag.add_connection(topic, msgtype, typestore=store)
+            bag.write(conns[topic], ns, store.serialize_ros1(msg, msgtype))
+
+
+TOPIC_MAP = """robot: three_bar
+topics:
+{rods}
+  /motors: {{kind: encoders, values: position, names: name, units: {{length: mm}}}}
+  /motors/target: {{kind: commands, values: position, names: name, units: {{length: mm}}}}
+  /strain: {{kind: cable_lengths}}
+  /feet: {{kind: contacts}}
+  /uwb: {{kind: uwb, node: responder, anchor: initiator, range: distance, times: stamps}}
+"""
+
+
+def test_a_lab_ros1_bag_imports_to_the_same_estimates(recorded: Path, tmp_path: Path) -> None:
+    from agents.recordings.offline import estimate_bag
+
+    with BagReader(recorded) as reader:
+        d, calibration = reader.description, reader.calibration
+    _ros1_bag(tmp_path / "lab.bag", recorded)
+    rods = "\n".join(
+        f"  /{r.name}/imu: {{kind: imu, rod: {r.name}}}\n"
+        f"  /{r.name}/ahrs: {{kind: ahrs, rod: {r.name}}}"
+        for r in d.rods
+    )
+    (tmp_path / "map.yaml").write_text(TOPIC_MAP.format(rods=rods))
+    lab_map = load_lab_map(tmp_path / "map.yaml")
+    import_recording([tmp_path / "lab.bag"], lab_map, d, calibration, tmp_path / "bag")
+    before, commands_before, _ = _contents(recorded)
+    after, commands_after, _ = _contents(tmp_path / "bag")
+    key = lambda s: (s.t, type(s).__name__, getattr(s, "rod", -1))  # noqa: E731
+    before, after = sorted(before, key=key), sorted(after, key=key)
+    assert [type(s) for s in after] == [type(s) for s in before]
+    for a, b in zip(after, before, strict=True):
+        if type(a).__name__ == "ImuSample":  # sensor_msgs/Imu has no field
+            assert (
+                a.t == b.t and np.array_equal(a.accel, b.accel) and np.array_equal(a.gyro, b.gyro)
+            )
+        else:
+            assert repr(a) == repr(b)
+    assert [c[0] for c in commands_after] == [c[0] for c in commands_before]
+    for (_, ca), (_, cb) in zip(commands_after, commands_before, strict=True):
+        np.testing.assert_allclose(ca, cb, rtol=1e-15)  # through millimetres: an ulp
+    estimate_bag(recorded, "ukf", tmp_path / "a", progress=False)
+    estimate_bag(tmp_path / "bag", "ukf", tmp_path / "b", progress=False)
+    a, b = np.load(tmp_path / "a" / "estimates.npz"), np.load(tmp_path / "b" / "estimates.npz")
+    for name in a.files:  # the same to the rounding of the commands' trip through mm
+        np.testing.assert_allclose(a[name], b[name], rtol=1e-9, atol=1e-12, err_msg=name)
+
+
+def test_a_bag_without_a_mapped_topic_is_one_line(recorded: Path, tmp_path: Path) -> None:
+    with BagReader(recorded) as reader:
+        d, calibration = reader.description, reader.calibration
+    _ros1_bag(tmp_path / "lab.bag", recorded)
+    (tmp_path / "map.yaml").write_text("topics:\n  /sonar: {kind: imu, rod: red}\n")
+    lab_map = load_lab_map(tmp_path / "map.yaml")
+    with pytest.raises(LabFileError, match=r"lab\.bag: no topic /sonar \(the bag has /blue/ahrs"):
+        import_recording([tmp_path / "lab.bag"], lab_map, d, calibration, tmp_path / "bag")
