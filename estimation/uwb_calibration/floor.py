@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.optimize import least_squares
 
 if TYPE_CHECKING:
     from collections.abc import Mapping
@@ -197,55 +196,47 @@ def lowest_floor(up: NDArray[np.float64], positions: NDArray[np.float64],
     return float(np.min(positions @ up)) - reach
 
 
-def _sphere(count: int) -> NDArray[np.float64]:
-    """``count`` unit vectors spread evenly over the sphere (a Fibonacci lattice)."""
-    k = np.arange(count) + 0.5
-    z = 1.0 - 2.0 * k / count
-    phi = np.pi * (1.0 + np.sqrt(5.0)) * k
-    r = np.sqrt(1.0 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+_ANCHOR_SLACK = 0.1  # m: an anchor further under the floor is on the wrong side of it
+_MODULE_SLACK = 0.25  # m: a module placed further under it is (in numbers) the wrong side
 
 
-_HINT_SIGMA = 0.05  # m: how far a hint's height may be off and still count as met
-_HINT_STARTS = 24  # grid directions refined
+def _hint_candidates(pts: NDArray[np.float64], h: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """The unit ``up`` vectors that put points ``pts`` (k, 3) at heights ``h`` (k,) best:
+    one where the points span space; where they span a plane (three anchors, or anchors
+    under one ceiling), the two that its normal leaves: ``up = u0 +- s n``, ``u0`` the
+    least-norm solution in the plane."""
+    P, dh = pts - pts.mean(axis=0), h - h.mean()
+    _, sv, Vt = np.linalg.svd(P)
+    u0 = np.linalg.lstsq(P, dh, rcond=None)[0]
+    if len(sv) == 3 and sv[2] > 1e-3 * sv[0]:
+        return [u0 / np.linalg.norm(u0)]
+    normal = Vt[2]
+    u0 = u0 - (u0 @ normal) * normal
+    rest = 1.0 - float(u0 @ u0)
+    if rest <= 0.0:  # the heights differ more than the anchors' spread: the steepest up
+        return [u0 / np.linalg.norm(u0)]
+    return [u0 + np.sqrt(rest) * normal, u0 - np.sqrt(rest) * normal]
 
 
 def _fit_hint(anchors: NDArray[np.float64], hint: FloorHint,
               positions: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:  # fmt: skip
     """``up`` and the origin's height that put the hint's anchors (three or more, not
-    on one line) at their heights. Heights of three anchors leave two mirror-image
-    answers (equal heights: up or down; else two tilts), which a search over every
-    direction finds; the one with the robot and the anchors above the floor, and the
-    robot nearest it, wins."""
+    on one line) at their heights. Anchors that span only a plane leave two mirror-image
+    answers (equal heights: up or down; else two tilts); the one with the robot and the
+    anchors above the floor, then the robot nearest it, wins."""
     idx = np.array(sorted(hint.heights), dtype=np.intp)
     h = np.array([hint.heights[int(a)] for a in idx])
     pts = anchors[idx]
-
-    def misfit(u: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        c = np.mean(h[None, :] - u @ pts.T, axis=1)  # (D,) the best height for each
-        return np.sum((u @ pts.T + c[:, None] - h) ** 2, axis=1), c
-
-    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        u = x[:3] / np.linalg.norm(x[:3])
-        return np.asarray(pts @ u + x[3] - h)
-
-    # Each answer from the grid's directions nearest to one, refined; then the best.
-    ups = _sphere(2000)
-    cost, c = misfit(ups)
-    answers = []
-    for k in np.argsort(cost)[:_HINT_STARTS]:
-        fit = least_squares(residuals, np.r_[ups[k], c[k]])
-        u = fit.x[:3] / np.linalg.norm(fit.x[:3])
-        below = np.count_nonzero(positions @ u + fit.x[3] < -_HINT_SIGMA) + np.count_nonzero(
-            anchors @ u + fit.x[3] < -_HINT_SIGMA
-        )
-        lift = float(np.median(positions @ u + fit.x[3])) if len(positions) else 0.0
-        answers.append((2.0 * float(fit.cost), int(below), lift, u, float(fit.x[3])))
-    least = min(a[0] for a in answers)
-    met = [a for a in answers if a[0] <= least + len(idx) * _HINT_SIGMA**2]
-    # Nothing under the floor; then the robot nearer the floor: it is rolled or
-    # carried there, not above the anchors (anchors at one height leave both).
-    best = min(met, key=lambda a: (a[1], a[2]))
+    best: tuple[int, int, float, NDArray[np.float64], float] | None = None
+    for up in _hint_candidates(pts, h):
+        height = float(np.mean(h - pts @ up))
+        # An anchor under the floor is impossible; a module a little under it is noise.
+        sunk = int(np.count_nonzero(anchors @ up + height < -_ANCHOR_SLACK))
+        below = int(np.count_nonzero(positions @ up + height < -_MODULE_SLACK))
+        lift = float(np.median(positions @ up + height)) if len(positions) else 0.0
+        if best is None or (sunk, below, lift) < best[:3]:
+            best = (sunk, below, lift, up, height)
+    assert best is not None
     return best[3], best[4]
 
 
