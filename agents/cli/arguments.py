@@ -208,6 +208,15 @@ def add_engine(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+def add_lab_map(parser: argparse.ArgumentParser) -> None:
+    """``--lab-map``: read the bag argument as a lab's own recording (imported first)."""
+    parser.add_argument(
+        "--lab-map", default=None,
+        help="a lab map (YAML: its bag's topics or its files' kinds, columns, units): read "
+        "the BAG argument as the lab's own ROS 1/ROS 2 bag or files, imported first",
+    )  # fmt: skip
+
+
 def add_ray(parser: argparse.ArgumentParser, what: str) -> None:
     """``--ray ADDRESS``: run ``what`` on a Ray cluster."""
     parser.add_argument(

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from agents.cli.arguments import Command, count, positive_float, positive_int
+from agents.cli.arguments import Command, add_lab_map, count, positive_float, positive_int
 
 if TYPE_CHECKING:
     import argparse
@@ -43,18 +43,21 @@ def add_identify(ide: argparse.ArgumentParser) -> None:
         "with the replay's, each replayed from its recorded start; 0: fit the node "
         "positions over the segments instead (damping then weakly determined)",
     )  # fmt: skip
+    add_lab_map(ide)
 
 
 def run_identify(args: argparse.Namespace) -> int:
     """``identify``: fit the parameters; print what was written."""
     from agents.identification.report import identify_command
+    from agents.recordings.importing import as_bag
 
-    result = identify_command(
-        args.bag, Path(args.out), params=[p for p in args.params.split(",") if p],
-        robot=args.robot, model=args.model, segment_seconds=args.segment_seconds,
-        max_evaluations=args.max_evaluations, workers=args.workers, seed=args.seed,
-        imu_windows=args.imu_windows,
-    )  # fmt: skip
+    with as_bag(args.bag, args.lab_map, args.robot) as bag:
+        result = identify_command(
+            bag, Path(args.out), params=[p for p in args.params.split(",") if p],
+            robot=args.robot, model=args.model, segment_seconds=args.segment_seconds,
+            max_evaluations=args.max_evaluations, workers=args.workers, seed=args.seed,
+            imu_windows=args.imu_windows,
+        )  # fmt: skip
     sys.stdout.write(result + "\n")
     return 0
 

@@ -7,11 +7,12 @@ import argparse
 import signal
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from agents.cli.arguments import (
     Command,
     add_engine,
+    add_lab_map,
     add_ray,
     calibration_seconds,
     count,
@@ -22,6 +23,9 @@ from agents.cli.arguments import (
     positive_int,
 )
 from agents.cli.errors import log, one_line, terminate
+
+if TYPE_CHECKING:
+    from tensegrity_gym.model.description import RobotDescription
 
 __all__ = ["COMMANDS"]
 
@@ -103,6 +107,7 @@ def add_estimate(est: argparse.ArgumentParser) -> None:
         default=None,
         help="a UWB calibration file (tensegrity-gym calibrate) to use instead of the bag's",
     )
+    add_lab_map(est)
     add_ray(est, "run each bag as a Ray task (the bags on a path every node reads)")
 
 
@@ -122,26 +127,37 @@ def _estimate_line(r: dict[str, Any]) -> str:
     return line
 
 
+def _estimated(
+    bag: str, args: argparse.Namespace, description: RobotDescription | None
+) -> list[dict[str, Any]]:
+    """``estimate_bag`` over ``bag`` with ``estimate``'s options."""
+    from agents.recordings.offline import estimate_bag
+
+    return estimate_bag(
+        bag,
+        args.estimator,
+        Path(args.out),
+        seed=args.seed,
+        description=description,
+        strict=args.strict,
+        progress=not args.no_progress,
+        calibration=args.calibration,
+        ray_address=args.ray,
+    )
+
+
 def run_estimate(args: argparse.Namespace) -> int:
     """``estimate``: run the estimator over the bags; print a line per bag (2 when a bag
     failed: the others are still estimated and printed)."""
-    from agents.recordings.offline import BAG_FAILURES, BagsFailedError, estimate_bag
+    from agents.recordings.importing import as_bag
+    from agents.recordings.offline import BAG_FAILURES, BagsFailedError
     from tensegrity_gym.model.description import load_robot
 
     failed = None
     try:
         description = load_robot(args.robot) if args.robot else None
-        results = estimate_bag(
-            args.bag,
-            args.estimator,
-            Path(args.out),
-            seed=args.seed,
-            description=description,
-            strict=args.strict,
-            progress=not args.no_progress,
-            calibration=args.calibration,
-            ray_address=args.ray,
-        )
+        with as_bag(args.bag, args.lab_map, args.robot) as bag:
+            results = _estimated(bag, args, description)
     except BagsFailedError as err:  # each failure is logged; the other bags were estimated
         results, failed = err.results, err
     except BAG_FAILURES as err:
@@ -175,18 +191,23 @@ def add_calibrate(cal: argparse.ArgumentParser) -> None:
     cal.add_argument("--world-seed", type=count, default=0, help="the simulated lab's seed")
     add_engine(cal)
     cal.add_argument("--robot", default=None, help="robot preset or YAML, for a bare bag")
+    add_lab_map(cal)
     cal.add_argument("--out", required=True, help="the calibration file to write (YAML)")
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """``calibrate``: fit the anchors and offsets; print what was written."""
     from agents.recordings.calibrate import calibrate_command
+    from agents.recordings.importing import as_bag
 
-    result = calibrate_command(
-        bag=args.bag, env_id=args.env, seconds=args.seconds, world_seed=args.world_seed,
-        robot=args.robot, out=Path(args.out), engine=args.engine, ids=args.ids,
-        floor=args.floor,
-    )  # fmt: skip
+    if args.lab_map is not None and args.bag is None:
+        raise ValueError("calibrate: --lab-map reads the lab's recording given as BAG")
+    with as_bag(args.bag, args.lab_map, args.robot) as bag:
+        result = calibrate_command(
+            bag=bag, env_id=args.env, seconds=args.seconds, world_seed=args.world_seed,
+            robot=args.robot, out=Path(args.out), engine=args.engine, ids=args.ids,
+            floor=args.floor,
+        )  # fmt: skip
     sys.stdout.write(result + "\n")
     return 0
 

@@ -3,6 +3,9 @@ through its lab map) written as this project's bag (:mod:`hardware.lab.importer`
 
 from __future__ import annotations
 
+import shutil
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -14,9 +17,9 @@ from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.protocols import SensorCalibration
 
 if TYPE_CHECKING:
-    from collections.abc import Sequence
+    from collections.abc import Iterator, Sequence
 
-__all__ = ["import_command"]
+__all__ = ["as_bag", "import_command"]
 
 
 def import_command(
@@ -59,3 +62,19 @@ def import_command(
         f"({summary['command_source']}) every {summary['control_period']:g} s; UWB "
         f"calibration {uwb.source}"
     )
+
+
+@contextmanager
+def as_bag(source: str, lab_map: str | None, robot: str | None) -> Iterator[str]:
+    """``source`` as this project's bag: itself without a lab map; with one, the lab's
+    recording (a ROS 1 or ROS 2 bag, files, a folder) imported into a temporary bag,
+    removed afterwards. What ``estimate``, ``calibrate`` and ``identify`` read."""
+    if lab_map is None:
+        yield source
+        return
+    folder = Path(tempfile.mkdtemp(prefix="tensegrity-gym-import-"))
+    try:
+        import_command([source], lab_map=lab_map, robot=robot, out=str(folder / "bag"))
+        yield str(folder / "bag")
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)

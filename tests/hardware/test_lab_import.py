@@ -4,6 +4,7 @@ the same samples and the same estimates as the bag it came from."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import gymnasium as gym
@@ -16,8 +17,6 @@ from hardware.lab import LabFileError, import_recording, load_lab_map, write_log
 from tensegrity_gym.model.samples import RgbdFrame
 
 if TYPE_CHECKING:
-    from pathlib import Path
-
     from tensegrity_gym.model.samples import Sample
 
 ENV_ID = "tensegrity_gym/ThreeBarRoll-v0"
@@ -284,3 +283,23 @@ def test_a_bag_without_a_mapped_topic_is_one_line(recorded: Path, tmp_path: Path
     lab_map = load_lab_map(tmp_path / "map.yaml")
     with pytest.raises(LabFileError, match=r"lab\.bag: no topic /sonar \(the bag has /blue/ahrs"):
         import_recording([tmp_path / "lab.bag"], lab_map, d, calibration, tmp_path / "bag")
+
+
+def test_estimate_reads_a_lab_bag_through_its_map(recorded: Path, tmp_path: Path) -> None:
+    """``--lab-map``: the lab's bag imported to a temporary bag, estimated, removed."""
+    import tempfile
+
+    from agents.cli import main
+
+    _ros1_bag(tmp_path / "lab.bag", recorded)
+    with BagReader(recorded) as reader:
+        rods = "\n".join(f"  /{r.name}/imu: {{kind: imu, rod: {r.name}}}\n"
+                         f"  /{r.name}/ahrs: {{kind: ahrs, rod: {r.name}}}"
+                         for r in reader.description.rods)  # fmt: skip
+    (tmp_path / "map.yaml").write_text(TOPIC_MAP.format(rods=rods))
+    before = set(Path(tempfile.gettempdir()).glob("tensegrity-gym-import-*"))
+    args = ["estimate", str(tmp_path / "lab.bag"), "--lab-map", str(tmp_path / "map.yaml"),
+            "--out", str(tmp_path / "out"), "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    assert (tmp_path / "out" / "estimates.npz").is_file()
+    assert set(Path(tempfile.gettempdir()).glob("tensegrity-gym-import-*")) == before
