@@ -131,6 +131,7 @@ def calibrate_ranges(
         result = replace(result, anchors=result.anchors @ R.T + shift, frame="known", floor="known")
     elif carried:
         result = _on_floor(result, solved, replace(run, on_floor=False), gravity, hint)
+    result = _handed(result, hint)
     verdict, flagged = judge(result, config)
     result = replace(result, verdict=verdict, flagged_anchors=flagged)
     extras = result.extras | {"screened_share": screened, "sample_period": config.sample_period,
@@ -158,6 +159,25 @@ def calibrate_samples(
             np.array([s.accel for s in imu], dtype=np.float64).reshape(-1, 3),
         )  # fmt: skip
     return calibrate_ranges(t, i, j, ranges, description, rounds=index, **kwargs)  # type: ignore[arg-type]
+
+
+def _handed(result: CalibrationResult, hint: FloorHint | None) -> CalibrationResult:
+    """``result`` with the handedness the hint's three counter-clockwise anchors give,
+    where the robot's shape left it undecided (mirrored through the x-z plane where
+    they turn the other way); where the shape decided it and the hint disagrees, that
+    is noted for the verdict. Only in a floor frame: without up there is no "seen from
+    above"."""
+    if hint is None or result.frame != "floor":
+        return result
+    sign = hint.counterclockwise_sign(result.anchors)
+    if sign == 0.0:
+        return result
+    if result.mirror == "undecided":
+        anchors = result.anchors * np.array([1.0, -1.0, 1.0]) if sign < 0 else result.anchors
+        return replace(result, anchors=anchors, mirror="hint")
+    if sign < 0:
+        return replace(result, extras=result.extras | {"handedness_disagrees": 1.0})
+    return result
 
 
 def _on_floor(

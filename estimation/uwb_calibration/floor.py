@@ -46,44 +46,68 @@ __all__ = [
 ]
 
 _GROUP = re.compile(r"^(\d+(?:,\d+)*)=([-+]?(?:\d+\.?\d*|\.\d+))$")
-HINT_FORMAT = "anchor heights above the floor in m, e.g. '0=4.7 1=4.5' or '0,1,2,3=4.6'"
+_TURN = re.compile(r"^ccw=(\d+),(\d+),(\d+)$")
+HINT_FORMAT = (
+    "anchor heights above the floor in m, e.g. '0=4.7 1=4.5' or '0,1,2,3=4.6', and "
+    "three anchors counter-clockwise seen from above, e.g. 'ccw=0,1,2'"
+)
 
 
 @dataclass(frozen=True)
 class FloorHint:
     """What a lab knows of its anchors without a calibration: their heights (m) above
-    the floor, by anchor index (0-based, the description's order)."""
+    the floor, by anchor index (0-based, the description's order), and three anchors
+    that turn counter-clockwise seen from above (the handedness, where the robot's
+    shape cannot tell it)."""
 
     heights: Mapping[int, float]
+    counterclockwise: tuple[int, int, int] | None = None
 
     def __post_init__(self) -> None:
-        if not self.heights:
-            raise ValueError(f"floor hint: no anchor height given ({HINT_FORMAT})")
+        if not self.heights and self.counterclockwise is None:
+            raise ValueError(f"floor hint: nothing given ({HINT_FORMAT})")
         for a, h in self.heights.items():
             if not isinstance(a, int) or a < 0 or not np.isfinite(h):
                 raise ValueError(f"floor hint: anchor {a!r} height {h!r} ({HINT_FORMAT})")
+        turn = self.counterclockwise
+        if turn is not None and len(set(turn)) != 3:
+            raise ValueError(f"floor hint: ccw={turn} must name three different anchors")
 
     def check(self, n_anchors: int) -> None:
         """A one-line ValueError where an anchor index is not one of ``n_anchors``."""
-        bad = [a for a in self.heights if a >= n_anchors]
+        bad = [a for a in (*self.heights, *(self.counterclockwise or ())) if a >= n_anchors]
         if bad:
             raise ValueError(
                 f"floor hint: anchor {bad[0]} is not one of the description's {n_anchors} "
                 f"anchors (0..{n_anchors - 1})"
             )
 
+    def counterclockwise_sign(self, anchors: NDArray[np.float64]) -> float:
+        """+1 where ``anchors`` (A, 3) of a floor frame turn as the hint says seen from
+        above, -1 where they turn the other way (a mirror image), 0 without the hint or
+        with the three on one line."""
+        if self.counterclockwise is None:
+            return 0.0
+        a, b, c = (anchors[k, :2] for k in self.counterclockwise)
+        cross = float((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]))
+        return float(np.sign(cross))
+
 
 def parse_floor_hint(text: str) -> FloorHint:
-    """A :class:`FloorHint` from ``"0=4.7 1=4.5"`` or ``"0,1,2,3=4.6"`` (anchors at one
-    height); ValueError naming the bad part."""
+    """A :class:`FloorHint` from ``"0=4.7 1=4.5"``, ``"0,1,2,3=4.6"`` (anchors at one
+    height) and ``"ccw=0,1,2"``; ValueError naming the bad part."""
     heights: dict[int, float] = {}
+    turn: tuple[int, int, int] | None = None
     for part in text.replace(";", " ").split():
-        match = _GROUP.match(part)
+        match, spin = _GROUP.match(part), _TURN.match(part)
+        if spin is not None:
+            turn = (int(spin.group(1)), int(spin.group(2)), int(spin.group(3)))
+            continue
         if match is None:
             raise ValueError(f"floor hint: cannot read {part!r} ({HINT_FORMAT})")
         for a in match.group(1).split(","):
             heights[int(a)] = float(match.group(2))
-    return FloorHint(heights)
+    return FloorHint(heights, turn)
 
 
 @dataclass(frozen=True)
@@ -249,6 +273,8 @@ def floor_from_hint(
     """``(up, height of the origin, misfit m)`` from the hint's anchor heights: with
     ``up`` known (gravity), any one gives the height; else three not on one line are
     needed (None with fewer)."""
+    if not hint.heights:
+        return None
     idx = np.array(sorted(hint.heights), dtype=np.intp)
     h = np.array([hint.heights[int(a)] for a in idx])
     if up is None:

@@ -109,7 +109,8 @@ class CalibrationResult:
     """Anchors (0-based) whose residuals stand out: moved, blocked, or multipath."""
     mirror: str
     """How the handedness was settled: ``"kept"``, ``"flipped"`` (from the robot's
-    shape) or ``"undecided"`` (too few samples show four modules at once)."""
+    shape), ``"hint"`` (from the floor hint's counter-clockwise anchors) or
+    ``"undecided"`` (too few samples show four modules at once, and no hint)."""
     frame: str = "floor"
     """``"floor"`` (z up, the floor at z = 0), ``"known"`` (the known anchors' frame) or
     ``"anchors"`` (no floor found: :meth:`anchors_in_anchor_frame`'s gauge)."""

@@ -61,7 +61,15 @@ def _doubts(result: CalibrationResult, config: CalibrationConfig) -> list[str]:
     if result.n_usable < 2 * config.min_samples:
         out.append(f"only {result.n_usable} usable samples")
     if result.mirror == "undecided":
-        out.append("handedness undecided (no sample shows four modules of the robot at once)")
+        out.append(
+            "handedness undecided (no sample shows four modules of the robot at once): give "
+            "three anchors counter-clockwise seen from above, e.g. floor hint 'ccw=0,1,2'"
+        )
+    if result.extras.get("handedness_disagrees"):
+        out.append(
+            "the hint's counter-clockwise anchors turn the other way in the robot's own "
+            "handedness (a mistyped hint, or anchors mislabelled)"
+        )
     return out + _floor_doubts(result, config)
 
 

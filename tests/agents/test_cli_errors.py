@@ -23,6 +23,17 @@ MISTAKES = {
     "bench": ["bench", "--steps", "-3"],
     "record": ["record", "--policy", "{tmp}/no_run", "--out", "{tmp}/r", "--steps", "2"],
     "estimate": ["estimate", "{tmp}/no_bag", "--out", "{tmp}/x"],
+    "import": ["import", "{tmp}/no_logs", "--map", "{tmp}/no_map.yaml", "--out", "{tmp}/b"],
+    "estimate --lab-map": [
+        "estimate",
+        "{tmp}/lab.bag",
+        "--lab-map",
+        "{tmp}/no_map.yaml",
+        "--robot",
+        "three_bar",
+        "--out",
+        "{tmp}/x",
+    ],
     "emulate": ["emulate", "--robot", "{tmp}/no_robot.yaml"],
 }
 
@@ -86,7 +97,7 @@ def test_the_commands_are_listed_in_their_order() -> None:
 
     names = [c.name for c in COMMANDS]
     assert names == ["demo", "train", "evaluate", "gait", "bench", "record", "estimate",
-                     "calibrate", "view", "identify", "emulate"]  # fmt: skip
+                     "calibrate", "import", "view", "identify", "emulate"]  # fmt: skip
     parser = build_parser()
     for name in names:
         with pytest.raises(SystemExit) as exit_:

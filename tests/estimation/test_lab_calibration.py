@@ -141,13 +141,13 @@ def test_time_constants_follow_the_rates(
 @pytest.mark.parametrize(
     ("text", "heights"),
     [("0=4.7 1=4.5", {0: 4.7, 1: 4.5}), ("0,1,2,3=4.6", dict.fromkeys(range(4), 4.6)),
-     ("2=.5;3=-0.1", {2: 0.5, 3: -0.1})],
+     ("2=.5;3=-0.1", {2: 0.5, 3: -0.1}), ("ccw=0,1,2", {})],
 )  # fmt: skip
 def test_floor_hints_read(text: str, heights: dict[int, float]) -> None:
     assert dict(parse_floor_hint(text).heights) == heights
 
 
-@pytest.mark.parametrize("text", ["", "0=x", "a=1", "0:4.7", "0=4.7 =2"])
+@pytest.mark.parametrize("text", ["", "0=x", "a=1", "0:4.7", "0=4.7 =2", "ccw=0,1", "ccw=1,1,2"])
 def test_bad_floor_hints_are_one_line(text: str) -> None:
     with pytest.raises(ValueError, match=r"^floor hint: ") as e:
         parse_floor_hint(text)
@@ -159,3 +159,24 @@ def test_a_hint_naming_an_anchor_the_robot_lacks_is_one_line(
 ) -> None:
     with pytest.raises(ValueError, match=r"anchor 9 is not one of the description's 8 anchors"):
         calibrate_samples(carried.uwb[:50], superball, floor_hint="9=1.0")
+
+
+def test_a_counterclockwise_hint_settles_an_undecided_handedness(
+    with_imu: CalibrationResult, carried: CarriedRecording
+) -> None:
+    """Where the robot's shape cannot tell the constellation from its mirror image, three
+    anchors the lab knows turn counter-clockwise seen from above do; where the shape can
+    and the hint disagrees, the verdict says so."""
+    from estimation.uwb_calibration.calibrate import _handed
+    from estimation.uwb_calibration.config import CalibrationConfig
+    from estimation.uwb_calibration.verdict import judge
+
+    mirrored = replace(with_imu, anchors=with_imu.anchors * [1.0, -1.0, 1.0], mirror="undecided")
+    assert "give three anchors counter-clockwise" in judge(mirrored, CalibrationConfig())[0]
+    settled = _handed(mirrored, parse_floor_hint("ccw=0,1,2"))
+    assert settled.mirror == "hint"
+    np.testing.assert_allclose(settled.anchors, with_imu.anchors)
+    assert np.max(rigid_alignment_errors(settled.anchors, carried.anchors)) <= 0.10
+    disagreed = _handed(with_imu, parse_floor_hint("ccw=0,2,1"))
+    assert disagreed.mirror == with_imu.mirror
+    assert "turn the other way" in judge(disagreed, CalibrationConfig())[0]

@@ -5,7 +5,7 @@ the same samples and the same estimates as the bag it came from."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -152,22 +152,27 @@ UWB_MSG = """std_msgs/Header header
 uint8[] initiator
 uint8[] responder
 float64[] distance
-time[] stamps
+{time}[] stamps
 """
 
 
-def _ros1_bag(path: Path, recorded: Path) -> None:
-    """The recording as a lab's ROS 1 bag: its own topic names, standard types (lengths
-    in mm), and a UWB message of its own."""
-    from rosbags.rosbag1 import Writer
+def _lab_bag(path: Path, recorded: Path, *, ros2: bool = False) -> None:
+    """The recording as a lab's ROS 1 bag (or ROS 2, MCAP): its own topic names,
+    standard types (lengths in mm), and a UWB message of its own."""
     from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
     samples, commands, reader = _contents(recorded)
     d = reader.description
-    store = get_typestore(Stores.ROS1_NOETIC)
-    store.register(get_types_from_msg(UWB_MSG, "lab_msgs/msg/Ranges"))
+    store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+    time = "builtin_interfaces/Time" if ros2 else "time"
+    store.register(get_types_from_msg(UWB_MSG.format(time=time), "lab_msgs/msg/Ranges"))
     T = store.types
-    Time, Header = T["builtin_interfaces/msg/Time"], T["std_msgs/msg/Header"]
+    Time = T["builtin_interfaces/msg/Time"]
+    seq = {} if ros2 else {"seq": 0}
+
+    def Header(**fields: object) -> object:  # noqa: N802
+        return T["std_msgs/msg/Header"](**seq, **fields)
+
     V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
     names = [d.cables[k].name for k in d.actuated]
 
@@ -178,7 +183,7 @@ def _ros1_bag(path: Path, recorded: Path) -> None:
     def imu(t: float, q: np.ndarray, a: np.ndarray, w: np.ndarray) -> object:
         zero = np.zeros(9)
         return T["sensor_msgs/msg/Imu"](
-            header=Header(seq=0, stamp=stamp(t), frame_id=""),
+            header=Header(stamp=stamp(t), frame_id=""),
             orientation=Q(x=q[0], y=q[1], z=q[2], w=q[3]), orientation_covariance=zero,
             angular_velocity=V3(x=w[0], y=w[1], z=w[2]), angular_velocity_covariance=zero,
             linear_acceleration=V3(x=a[0], y=a[1], z=a[2]), linear_acceleration_covariance=zero,
@@ -186,7 +191,7 @@ def _ros1_bag(path: Path, recorded: Path) -> None:
 
     def joints(t: float, values: np.ndarray) -> object:
         return T["sensor_msgs/msg/JointState"](
-            header=Header(seq=0, stamp=stamp(t), frame_id=""), name=names[::-1],
+            header=Header(stamp=stamp(t), frame_id=""), name=names[::-1],
             position=1e3 * values[::-1], velocity=np.zeros(0), effort=np.zeros(0),
         )  # the lab's order, not the description's; millimetres  # fmt: skip
 
@@ -213,19 +218,29 @@ def _ros1_bag(path: Path, recorded: Path) -> None:
         elif kind == "UwbRangeSample":
             pairs = np.asarray(s.pairs)
             msg = T["lab_msgs/msg/Ranges"](
-                header=Header(seq=0, stamp=stamp(s.t), frame_id=""),
+                header=Header(stamp=stamp(s.t), frame_id=""),
                 initiator=pairs[:, 0].astype(np.uint8), responder=pairs[:, 1].astype(np.uint8),
                 distance=np.asarray(s.ranges), stamps=[stamp(x) for x in s.times],
             )  # fmt: skip
             out.append(("/uwb", "lab_msgs/msg/Ranges", ns, msg))
     for t, c in commands:
         out.append(("/motors/target", "sensor_msgs/msg/JointState", round(t * 1e9), joints(t, c)))
-    with Writer(path) as bag:
+    if ros2:
+        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import Writer as Ros2Writer
+
+        writer: Any = Ros2Writer(path, version=9, storage_plugin=StoragePlugin.MCAP)
+        serialize = store.serialize_cdr
+    else:
+        from rosbags.rosbag1 import Writer as Ros1Writer
+
+        writer, serialize = Ros1Writer(path), store.serialize_ros1
+    with writer as bag:
         conns: dict[str, object] = {}
         for topic, msgtype, ns, msg in sorted(out, key=lambda m: m[2]):
             if topic not in conns:
                 conns[topic] = bag.add_connection(topic, msgtype, typestore=store)
-            bag.write(conns[topic], ns, store.serialize_ros1(msg, msgtype))
+            bag.write(conns[topic], ns, serialize(msg, msgtype))
 
 
 TOPIC_MAP = """robot: three_bar
@@ -239,12 +254,15 @@ topics:
 """
 
 
-def test_a_lab_ros1_bag_imports_to_the_same_estimates(recorded: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize("ros", ["ros1", "ros2"])
+def test_a_lab_bag_imports_to_the_same_estimates(recorded: Path, tmp_path: Path, ros: str) -> None:
+    """A lab's ROS 1 bag, or ROS 2 bag (MCAP), through its topic map."""
     from agents.recordings.offline import estimate_bag
 
     with BagReader(recorded) as reader:
         d, calibration = reader.description, reader.calibration
-    _ros1_bag(tmp_path / "lab.bag", recorded)
+    lab = tmp_path / ("lab.bag" if ros == "ros1" else "lab_ros2")
+    _lab_bag(lab, recorded, ros2=ros == "ros2")
     rods = "\n".join(
         f"  /{r.name}/imu: {{kind: imu, rod: {r.name}}}\n"
         f"  /{r.name}/ahrs: {{kind: ahrs, rod: {r.name}}}"
@@ -252,7 +270,7 @@ def test_a_lab_ros1_bag_imports_to_the_same_estimates(recorded: Path, tmp_path: 
     )
     (tmp_path / "map.yaml").write_text(TOPIC_MAP.format(rods=rods))
     lab_map = load_lab_map(tmp_path / "map.yaml")
-    import_recording([tmp_path / "lab.bag"], lab_map, d, calibration, tmp_path / "bag")
+    import_recording([lab], lab_map, d, calibration, tmp_path / "bag")
     before, commands_before, _ = _contents(recorded)
     after, commands_after, _ = _contents(tmp_path / "bag")
     key = lambda s: (s.t, type(s).__name__, getattr(s, "rod", -1))  # noqa: E731
@@ -278,7 +296,7 @@ def test_a_lab_ros1_bag_imports_to_the_same_estimates(recorded: Path, tmp_path: 
 def test_a_bag_without_a_mapped_topic_is_one_line(recorded: Path, tmp_path: Path) -> None:
     with BagReader(recorded) as reader:
         d, calibration = reader.description, reader.calibration
-    _ros1_bag(tmp_path / "lab.bag", recorded)
+    _lab_bag(tmp_path / "lab.bag", recorded)
     (tmp_path / "map.yaml").write_text("topics:\n  /sonar: {kind: imu, rod: red}\n")
     lab_map = load_lab_map(tmp_path / "map.yaml")
     with pytest.raises(LabFileError, match=r"lab\.bag: no topic /sonar \(the bag has /blue/ahrs"):
@@ -291,7 +309,7 @@ def test_estimate_reads_a_lab_bag_through_its_map(recorded: Path, tmp_path: Path
 
     from agents.cli import main
 
-    _ros1_bag(tmp_path / "lab.bag", recorded)
+    _lab_bag(tmp_path / "lab.bag", recorded)
     with BagReader(recorded) as reader:
         rods = "\n".join(f"  /{r.name}/imu: {{kind: imu, rod: {r.name}}}\n"
                          f"  /{r.name}/ahrs: {{kind: ahrs, rod: {r.name}}}"
@@ -303,3 +321,22 @@ def test_estimate_reads_a_lab_bag_through_its_map(recorded: Path, tmp_path: Path
     assert main(args) == 0
     assert (tmp_path / "out" / "estimates.npz").is_file()
     assert set(Path(tempfile.gettempdir()).glob("tensegrity-gym-import-*")) == before
+
+
+def test_identify_runs_on_an_imported_recording(exported: Path, tmp_path: Path) -> None:
+    """A lab's recording (no ground truth) imported and identified end to end: fitted to
+    the UKF's estimates, a robot written that gym.make loads."""
+    from agents.cli import main
+
+    out = tmp_path / "fitted.yaml"
+    args = ["identify", str(exported), "--lab-map", str(exported / "map.yaml"),
+            "--out", str(out), "--params", "damping", "--max-evaluations", "4",
+            "--workers", "1"]  # fmt: skip
+    assert main(args) == 0
+    report = (tmp_path / "fitted_identify" / "report.md").read_text()
+    assert "UKF estimates" in report
+    from tensegrity_gym.envs.factory import make_env
+
+    env = make_env(out, estimator="oracle", calibration="true")
+    env.reset(seed=0)
+    env.close()
