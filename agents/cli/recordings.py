@@ -182,7 +182,8 @@ def add_calibrate(cal: argparse.ArgumentParser) -> None:
                      "description's nodes and anchors)")  # fmt: skip
     cal.add_argument("--floor", default=None,
                      help="anchor heights above the floor (m), for a robot that never "
-                     "rested on it: '0=4.7 1=4.5' or '0,1,2,3=4.6'")  # fmt: skip
+                     "rested on it: '0=4.7 1=4.5' or '0,1,2,3=4.6'; 'ccw=0,1,2': anchors "
+                     "counter-clockwise seen from above (the handedness)")  # fmt: skip
     cal.add_argument(
         "--env", default=None, help=env_help("or record a calibration run of this env id")
     )

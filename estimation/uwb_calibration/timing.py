@@ -25,7 +25,8 @@ __all__ = ["RangingRates", "fitted_to_rates", "ranging_rates"]
 _MARGIN = 1.0
 """The distinct anchors a sample is sized to expect, over the number it needs."""
 _START_MODULES = 6
-"""Distinct modules each anchor should range within the start's window."""
+"""Distinct modules each anchor should range within the start's window (three quarters
+of the robot's where it has fewer than eight)."""
 _FIRST_SAMPLES = 10
 """Samples (of the fitted period) the growth's first stage spans at least."""
 
@@ -79,7 +80,8 @@ def fitted_to_rates(
     rates = ranging_rates(table)
     needed = _MARGIN * config.min_anchor_ranges
     period = _seconds_for(needed, n_anchors, rates.module)
-    window = _seconds_for(_START_MODULES, table.n_nodes, rates.anchor)
+    # Several modules per anchor, however few the robot has (the 3-bar: 6 in all).
+    window = _seconds_for(min(_START_MODULES, 0.75 * table.n_nodes), table.n_nodes, rates.anchor)
     # A recording too short to measure keeps the settings (it fails later, by count).
     period = config.sample_period if not np.isfinite(period) else max(config.sample_period, period)
     window = config.window if not np.isfinite(window) else max(config.window, window, period)

@@ -2,7 +2,13 @@
 of the other sensors (:mod:`hardware.lab.logs`), and a whole recording written as this
 project's bag (:mod:`hardware.lab.importer`)."""
 
-from hardware.lab.importer import LabMap, import_recording, load_lab_map, read_recording
+from hardware.lab.importer import (
+    LabMap,
+    LabReplay,
+    import_recording,
+    load_lab_map,
+    read_recording,
+)
 from hardware.lab.logs import write_logs
 from hardware.lab.ranges import (
     COLUMNS,
@@ -20,6 +26,7 @@ __all__ = [
     "IdMap",
     "LabFileError",
     "LabMap",
+    "LabReplay",
     "RangeRows",
     "identity_map",
     "import_recording",

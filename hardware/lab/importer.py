@@ -23,6 +23,8 @@ encoders' last reading, held (what the motors were holding), and the run info sa
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -30,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from hardware.bag.replay import ReplayBackend
 from hardware.bag.writer import BagWriter
 from hardware.lab.logs import KINDS, LogSpec, read_log
 from hardware.lab.ranges import IdMap, RangeRows, id_map_from_doc, identity_map, read_ranges
@@ -47,7 +50,14 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.protocols import SensorCalibration
     from tensegrity_gym.model.samples import Sample
 
-__all__ = ["LabMap", "LabRecording", "import_recording", "load_lab_map", "read_recording"]
+__all__ = [
+    "LabMap",
+    "LabRecording",
+    "LabReplay",
+    "import_recording",
+    "load_lab_map",
+    "read_recording",
+]
 
 DEFAULT_CONTROL_PERIOD = 0.1
 """s: the control period of an imported recording without commands of its own."""
@@ -284,3 +294,34 @@ def import_recording(
     return {"bag": str(out), "samples": counts, "commands": len(commands),
             "command_source": source, "control_period": period, "seconds": round(span, 3),
             "clock_origin_ns": recording.clock_origin_ns}  # fmt: skip
+
+
+class LabReplay(ReplayBackend):
+    """A lab's recording (its ROS 1/ROS 2 bag or files, read through ``lab_map``)
+    replayed as :class:`~hardware.bag.replay.ReplayBackend` replays a bag: imported into
+    a temporary bag, removed when the backend closes. ``gym.make(ID, driver=LabReplay(...))``
+    runs an env on it, as ``driver="bag:PATH"`` does on a bag."""
+
+    def __init__(
+        self,
+        sources: Sequence[str | os.PathLike[str]],
+        lab_map: LabMap,
+        description: RobotDescription,
+        calibration: SensorCalibration,
+        *,
+        control_period: float | None = None,
+    ) -> None:
+        self._folder = Path(tempfile.mkdtemp(prefix="tensegrity-gym-replay-"))
+        try:
+            import_recording(sources, lab_map, description, calibration, self._folder / "bag",
+                             control_period=control_period)  # fmt: skip
+            super().__init__(self._folder / "bag", description=description)
+        except BaseException:
+            shutil.rmtree(self._folder, ignore_errors=True)
+            raise
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            shutil.rmtree(self._folder, ignore_errors=True)

@@ -190,10 +190,11 @@ def _imu(
     path: tuple[CubicSpline, CubicSpline],
     seconds: float,
     rng: np.random.Generator,
+    rate: float,
 ) -> tuple[list[ImuSample], list[AhrsSample]]:
-    """The rods' IMUs along the path, by the simulator's IMU model."""
+    """The rods' IMUs along the path at ``rate`` Hz, by the simulator's IMU model."""
     model = ImuModel(description.sensors.imu, description)
-    t = np.arange(0.0, seconds, 1.0 / description.sensors.imu.rate)
+    t = np.arange(0.0, seconds, 1.0 / rate)
     nodes = _poses(description, *path, t)
     rn = description.rod_nodes
     rest_axes = rod_axes(description.initial_positions, rn)
@@ -220,11 +221,13 @@ def carried_recording(
     seconds: float = 240.0,
     anchors: NDArray[np.float64] | None = None,
     ranging: LabRanging | None = None,
+    imu_rate: float | None = None,
 ) -> CarriedRecording:
     """The robot carried for ``seconds`` through the room of ``anchors`` (A, 3) m
     (default :data:`LAB_ROOM`), ranged as ``ranging`` says (default
-    :class:`LabRanging`: 1-3 Hz pairs, no robot-robot ranging, a 4 m common offset).
-    Every draw comes from ``rng``."""
+    :class:`LabRanging`: 1-3 Hz pairs, no robot-robot ranging, a 4 m common offset),
+    its IMUs sampled at ``imu_rate`` Hz (default: the description's). Every draw comes
+    from ``rng``."""
     ranging = ranging or LabRanging()
     anchors = np.asarray(LAB_ROOM if anchors is None else anchors, dtype=np.float64)
     rest = description.initial_positions
@@ -235,7 +238,7 @@ def carried_recording(
     high = np.r_[anchors[:, :2].max(axis=0) - _MARGIN, lowest + _REACH]
     path = _path(rng, seconds, low, high)
     t, pairs, m, offsets = _ranges(description, anchors, ranging, path, seconds, rng)
-    imu, ahrs = _imu(description, path, seconds, rng)
+    imu, ahrs = _imu(description, path, seconds, rng, imu_rate or description.sensors.imu.rate)
     times = np.arange(0.0, seconds, 0.1)
     return CarriedRecording(
         uwb=_messages(t, pairs, m, ranging.message_period), imu=imu, ahrs=ahrs,

@@ -32,6 +32,8 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.sim.carried import CarriedRecording
 
+pytestmark = pytest.mark.xdist_group("lab_calibration")  # the recording's fixtures, once
+
 SECONDS = 150.0
 HEIGHTS = {a: xyz[2] for a, xyz in enumerate(LAB_ROOM)}
 
@@ -43,7 +45,7 @@ def superball() -> RobotDescription:
 
 @pytest.fixture(scope="module")
 def carried(superball: RobotDescription) -> CarriedRecording:
-    return carried_recording(superball, np.random.default_rng(3), seconds=SECONDS)
+    return carried_recording(superball, np.random.default_rng(3), seconds=SECONDS, imu_rate=50.0)
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +70,7 @@ def test_carried_robot_with_imu_and_one_height(
     assert "floor" not in r.verdict  # the floor is settled: no doubt about it
 
 
+@pytest.mark.slow  # a third solve of the recording: the bench's cases cover it too
 def test_carried_robot_with_imu_alone_says_the_height_is_a_guess(
     superball: RobotDescription, carried: CarriedRecording
 ) -> None:
@@ -77,6 +80,7 @@ def test_carried_robot_with_imu_alone_says_the_height_is_a_guess(
     assert "the floor's height is a guess" in r.verdict and "0=4.7" in r.verdict
 
 
+@pytest.mark.slow  # a fourth solve: the bench's three-heights case covers it too
 def test_carried_robot_with_a_height_hint_alone(
     superball: RobotDescription, carried: CarriedRecording
 ) -> None:
@@ -180,3 +184,25 @@ def test_a_counterclockwise_hint_settles_an_undecided_handedness(
     disagreed = _handed(with_imu, parse_floor_hint("ccw=0,2,1"))
     assert disagreed.mirror == with_imu.mirror
     assert "turn the other way" in judge(disagreed, CalibrationConfig())[0]
+
+
+@pytest.mark.parametrize(
+    "hint", ["0=4.7 4=0.4 5=1.1", "0=4.7 1=4.5 2=4.6 3=4.4", "1=4.5 6=0.5 7=2.3"]
+)
+def test_anchor_heights_tell_the_floor_in_any_frame(hint: str, carried: CarriedRecording) -> None:
+    """Three (or coplanar) anchor heights leave two mirror-image floors; the one with no
+    anchor under it is found, from the truth turned every way (no solve: fast)."""
+    from estimation.uwb_calibration.floor import floor_from_hint
+    from tensegrity_gym.model.lie import so3_exp
+
+    rng = np.random.default_rng(0)
+    modules = carried.nodes.reshape(-1, 3)
+    for _ in range(20):
+        R = so3_exp(rng.normal(0.0, 2.0, 3))
+        shift = rng.normal(0.0, 3.0, 3)
+        found = floor_from_hint(carried.anchors @ R.T + shift, parse_floor_hint(hint),
+                                modules @ R.T + shift)  # fmt: skip
+        assert found is not None
+        up, height, misfit = found
+        assert np.degrees(np.arccos(np.clip(up @ (R @ [0.0, 0.0, 1.0]), -1, 1))) < 0.5
+        assert abs(height + up @ shift) < 0.05 and misfit < 0.1

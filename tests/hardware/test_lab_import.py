@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.samples import Sample
 
 ENV_ID = "tensegrity_gym/ThreeBarRoll-v0"
+pytestmark = pytest.mark.xdist_group("lab_import")  # the recording's fixtures, once
 
 
 @pytest.fixture(scope="module")
@@ -254,6 +255,16 @@ topics:
 """
 
 
+def _topic_map(d: Any) -> str:
+    """The lab map of :func:`_lab_bag`'s topics for robot ``d``."""
+    rods = "\n".join(
+        f"  /{r.name}/imu: {{kind: imu, rod: {r.name}}}\n"
+        f"  /{r.name}/ahrs: {{kind: ahrs, rod: {r.name}}}"
+        for r in d.rods
+    )
+    return TOPIC_MAP.format(rods=rods)
+
+
 @pytest.mark.parametrize("ros", ["ros1", "ros2"])
 def test_a_lab_bag_imports_to_the_same_estimates(recorded: Path, tmp_path: Path, ros: str) -> None:
     """A lab's ROS 1 bag, or ROS 2 bag (MCAP), through its topic map."""
@@ -263,12 +274,7 @@ def test_a_lab_bag_imports_to_the_same_estimates(recorded: Path, tmp_path: Path,
         d, calibration = reader.description, reader.calibration
     lab = tmp_path / ("lab.bag" if ros == "ros1" else "lab_ros2")
     _lab_bag(lab, recorded, ros2=ros == "ros2")
-    rods = "\n".join(
-        f"  /{r.name}/imu: {{kind: imu, rod: {r.name}}}\n"
-        f"  /{r.name}/ahrs: {{kind: ahrs, rod: {r.name}}}"
-        for r in d.rods
-    )
-    (tmp_path / "map.yaml").write_text(TOPIC_MAP.format(rods=rods))
+    (tmp_path / "map.yaml").write_text(_topic_map(d))
     lab_map = load_lab_map(tmp_path / "map.yaml")
     import_recording([lab], lab_map, d, calibration, tmp_path / "bag")
     before, commands_before, _ = _contents(recorded)
@@ -311,10 +317,7 @@ def test_estimate_reads_a_lab_bag_through_its_map(recorded: Path, tmp_path: Path
 
     _lab_bag(tmp_path / "lab.bag", recorded)
     with BagReader(recorded) as reader:
-        rods = "\n".join(f"  /{r.name}/imu: {{kind: imu, rod: {r.name}}}\n"
-                         f"  /{r.name}/ahrs: {{kind: ahrs, rod: {r.name}}}"
-                         for r in reader.description.rods)  # fmt: skip
-    (tmp_path / "map.yaml").write_text(TOPIC_MAP.format(rods=rods))
+        (tmp_path / "map.yaml").write_text(_topic_map(reader.description))
     before = set(Path(tempfile.gettempdir()).glob("tensegrity-gym-import-*"))
     args = ["estimate", str(tmp_path / "lab.bag"), "--lab-map", str(tmp_path / "map.yaml"),
             "--out", str(tmp_path / "out"), "--no-progress"]  # fmt: skip
@@ -340,3 +343,31 @@ def test_identify_runs_on_an_imported_recording(exported: Path, tmp_path: Path) 
     env = make_env(out, estimator="oracle", calibration="true")
     env.reset(seed=0)
     env.close()
+
+
+def test_an_env_replays_a_lab_bag_as_it_replays_its_own(recorded: Path, tmp_path: Path) -> None:
+    """``driver=LabReplay(...)``: the lab's bag imported to a temporary bag and replayed,
+    the same observations as ``driver="bag:PATH"`` on the bag it came from; the
+    temporary bag goes when the env closes."""
+    from hardware.lab import LabReplay
+
+    with BagReader(recorded) as reader:
+        d, calibration = reader.description, reader.calibration
+    _lab_bag(tmp_path / "lab.bag", recorded)
+    (tmp_path / "map.yaml").write_text(_topic_map(d))
+    replay = LabReplay([tmp_path / "lab.bag"], load_lab_map(tmp_path / "map.yaml"), d, calibration)
+    folder = replay._folder
+    observed = []
+    for driver in (f"bag:{recorded}", replay):
+        env = gym.make(ENV_ID, driver=driver, estimator="ukf")
+        obs, _ = env.reset(seed=0)
+        run = [obs]
+        backend = env.unwrapped.backend  # type: ignore[attr-defined]
+        for _ in range(10):
+            action = env.unwrapped.targets_to_action(backend.next_command)  # type: ignore[attr-defined]
+            obs, *_ = env.step(action)
+            run.append(obs)
+        env.close()
+        observed.append(np.array(run))
+    np.testing.assert_allclose(observed[1], observed[0], rtol=1e-6, atol=1e-7)
+    assert not folder.exists()
