@@ -4,7 +4,8 @@ SUPERball carried by hand through a 10 x 15 m room with eight anchors up to 4.7 
 (:mod:`tensegrity_gym.sim.carried`): each endcap-anchor pair ranged at 1-3 Hz, 30 %
 lost, 1 % multipath, no robot-robot ranging, every offset near a common 4 m. The
 calibrator gets the ranges, the description and, by case, the rods' IMUs and a floor
-hint; never an anchor position. Per world seed and case: the anchors' RMS and largest
+hint; never an anchor position; and, per seed, the same walk ranged at 1 Hz for every
+pair, with the IMUs and one height. Per world seed and case: the anchors' RMS and largest
 error after the best rigid motion (the constellation's shape), the largest error in the
 floor frame (after the best turn about z and shift along the floor only: heights and
 tilt as they came out), the floor's tilt, the common offset found, the floor's source,
@@ -14,6 +15,7 @@ the verdict, the wall time.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -77,6 +79,10 @@ def bench_lab_calibration(
         rec = carried_recording(d, np.random.default_rng(seed), seconds=seconds, ranging=ranging)
         ranges = sum(len(s.times) for s in rec.uwb)
         cases = {name: _case(d, rec, imu, hint, seed) for name, (imu, hint) in CASES.items()}
+        # The issue's slowest: every pair at 1 Hz, with the IMUs and one height.
+        slow = carried_recording(d, np.random.default_rng(seed), seconds=seconds,
+                                 ranging=replace(ranging, pair_rate=(1.0, 1.0)))  # fmt: skip
+        cases["one_hz_imu_and_one_height"] = _case(d, slow, True, _ONE_HEIGHT, seed)
         runs.append({"world_seed": seed, "ranges": ranges, "cases": cases})
     return {
         "robot": d.name, "seconds": seconds, "room_anchors": [list(a) for a in LAB_ROOM],
