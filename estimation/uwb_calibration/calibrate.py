@@ -115,6 +115,28 @@ def calibrate_ranges(
     valid, usable = _usable(table, config)
     known = _known(known_anchors, table.n_anchors)
     run = Run(table, usable, valid, description, config, rng)
+    result = _solved_and_framed(run, known, gravity, hint)
+    result = _handed(result, hint)
+    verdict, flagged = judge(result, config)
+    result = replace(result, verdict=verdict, flagged_anchors=flagged)
+    extras = result.extras | {"screened_share": screened, "sample_period": config.sample_period,
+                              "window": config.window, "module_rate": rates.module,
+                              "pair_rate": rates.pair}  # fmt: skip
+    result = replace(result, wall_time=time.perf_counter() - clock, extras=extras)
+    logger.info("UWB calibration: %s (%.1f s)", result.verdict, result.wall_time)
+    return result
+
+
+def _solved_and_framed(
+    run: Run,
+    known: NDArray[np.float64] | None,
+    gravity: GravityRows | None,
+    hint: FloorHint | None,
+) -> CalibrationResult:
+    """The joint solve of ``run``, its handedness settled, in its frame: the known
+    anchors', the floor the robot rested on, or (a carried robot) the floor gravity or
+    the hint tells; not yet judged."""
+    table, description = run.table, run.description
     to_lab: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None
     # The solve's dense blocks are a few hundred rows: BLAS threads only get in the way.
     with single_threaded_blas():
@@ -125,20 +147,12 @@ def calibrate_ranges(
         elif carried:
             solved = refine_free(run, solved)
         solved, mirror, votes = _settle_mirror(solved, description, to_lab is None)
-        result = _result(table, solved, usable, config, mirror, votes, carried)
+        result = _result(table, solved, run.usable, run.config, mirror, votes, carried)
     if to_lab is not None:
         R, shift = to_lab
-        result = replace(result, anchors=result.anchors @ R.T + shift, frame="known", floor="known")
-    elif carried:
-        result = _on_floor(result, solved, replace(run, on_floor=False), gravity, hint)
-    result = _handed(result, hint)
-    verdict, flagged = judge(result, config)
-    result = replace(result, verdict=verdict, flagged_anchors=flagged)
-    extras = result.extras | {"screened_share": screened, "sample_period": config.sample_period,
-                              "window": config.window, "module_rate": rates.module,
-                              "pair_rate": rates.pair}  # fmt: skip
-    result = replace(result, wall_time=time.perf_counter() - clock, extras=extras)
-    logger.info("UWB calibration: %s (%.1f s)", result.verdict, result.wall_time)
+        return replace(result, anchors=result.anchors @ R.T + shift, frame="known", floor="known")
+    if carried:
+        return _on_floor(result, solved, replace(run, on_floor=False), gravity, hint)
     return result
 
 

@@ -39,14 +39,23 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from hardware.lab.table import UNITS, LabFileError, Table, nanoseconds, read_table, unit_scale
+from hardware.lab.ranges import write_ranges
+from hardware.lab.table import (
+    UNITS,
+    LabFileError,
+    Table,
+    nanoseconds,
+    read_table,
+    rod_index,
+    unit_scale,
+)
 from tensegrity_gym.model.samples import (
     AhrsSample,
     CableLengthSample,
     ContactSample,
     EncoderSample,
     ImuSample,
-    ns_to_seconds,
+    UwbRangeSample,
 )
 
 if TYPE_CHECKING:
@@ -114,18 +123,7 @@ KINDS = ("imu", "ahrs", "encoders", "cable_lengths", "contacts", "commands")
 
 def _rod_index(values: NDArray[Any], description: RobotDescription, where: str) -> NDArray[np.intp]:
     names = [r.name for r in description.rods]
-    out = np.empty(len(values), dtype=np.intp)
-    for k, v in enumerate(values.tolist()):
-        text = str(v).strip()
-        if text in names:
-            out[k] = names.index(text)
-        elif text.isdigit() and int(text) < len(names):
-            out[k] = int(text)
-        else:
-            raise LabFileError(
-                f"{where}: rod {text!r} is not one of {', '.join(names)} or 0..{len(names) - 1}"
-            )
-    return out
+    return np.array([rod_index(v, names, where) for v in values.tolist()], dtype=np.intp)
 
 
 def _floats(table: Table, names: Sequence[str]) -> NDArray[np.float64]:
@@ -223,9 +221,6 @@ def write_logs(
     ``folder`` (UWB ranges as ``uwb.csv``), times in ns on the recording's clock
     (``clock_origin_ns`` + t), with the lab map ``map.yaml`` that reads them back;
     returns the map's path. RGB-D frames are left out."""
-    from hardware.lab.ranges import write_ranges
-    from tensegrity_gym.model.samples import UwbRangeSample
-
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     files: dict[str, dict[str, Any]] = {}
@@ -253,8 +248,3 @@ def write_logs(
     path = out / "map.yaml"
     path.write_text(yaml.safe_dump({"robot": description.name, "files": files}, sort_keys=False))
     return path
-
-
-def seconds_since(ns: NDArray[np.int64], origin_ns: int) -> NDArray[np.float64]:
-    """Whole-ns stamps (k,) as seconds from ``origin_ns`` (exact to the ns)."""
-    return np.array([ns_to_seconds(int(x) - origin_ns) for x in ns])

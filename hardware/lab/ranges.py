@@ -76,6 +76,10 @@ class IdMap:
     time_scale: float = 1.0
     range_scale: float = 1.0
 
+    def module_ids(self, lab_ids: NDArray[Any]) -> NDArray[np.intp]:
+        """The description's module id of each lab id (k,); -1 where the map lacks it."""
+        return np.array([self.modules.get(_plain(x), -1) for x in lab_ids.tolist()], dtype=np.intp)
+
 
 def identity_map(description: RobotDescription) -> IdMap:
     """Ids that already are the description's module ids."""
@@ -217,8 +221,7 @@ def read_ranges(
         raise LabFileError(f"{p}: no such file")
     ids = ids or identity_map(description)
     cols = _columns(p)
-    node = np.array([ids.modules.get(_plain(x), -1) for x in cols["node"]], dtype=np.intp)
-    other = np.array([ids.modules.get(_plain(x), -1) for x in cols["anchor"]], dtype=np.intp)
+    node, other = ids.module_ids(cols["node"]), ids.module_ids(cols["anchor"])
     known = (node >= 0) & (other >= 0) & (node != other)
     if not known.all():
         strange = sorted(

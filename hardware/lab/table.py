@@ -25,6 +25,7 @@ __all__ = [
     "nanoseconds",
     "read_table",
     "read_yaml",
+    "rod_index",
     "unit_scale",
 ]
 
@@ -41,6 +42,19 @@ UNITS: dict[str, dict[str, float]] = {
 class LabFileError(ValueError):
     """A lab's file or map cannot be read; one line naming the file (and the field, or
     the line)."""
+
+
+def rod_index(name: Any, rod_names: Sequence[str], where: str) -> int:
+    """The index of the rod a lab names by its name or its index; LabFileError naming
+    ``where`` for one the robot does not have."""
+    text = str(name).strip()
+    if text in rod_names:
+        return list(rod_names).index(text)
+    if text.isdigit() and int(text) < len(rod_names):
+        return int(text)
+    raise LabFileError(
+        f"{where}: rod {text!r} is not one of {', '.join(rod_names)} or 0..{len(rod_names) - 1}"
+    )
 
 
 def read_yaml(path: str | os.PathLike[str], what: str) -> Any:

@@ -36,13 +36,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from hardware.lab.table import LabFileError, unit_scale
+from hardware.lab.table import LabFileError, rod_index, unit_scale
 from tensegrity_gym.model.samples import (
     AhrsSample,
     CableLengthSample,
     ContactSample,
     EncoderSample,
     ImuSample,
+    UwbRangeSample,
     ns_to_seconds,
     seconds_to_ns,
 )
@@ -128,14 +129,7 @@ def _get(msg: Any, path: str, where: str) -> Any:
 
 
 def _rod(name: str, description: RobotDescription, where: str) -> int:
-    names = [r.name for r in description.rods]
-    if name in names:
-        return names.index(name)
-    if name.isdigit() and int(name) < len(names):
-        return int(name)
-    raise LabFileError(
-        f"{where}.rod: {name!r} is not one of {', '.join(names)} or 0..{len(names) - 1}"
-    )
+    return rod_index(name, [r.name for r in description.rods], f"{where}.rod")
 
 
 def _ordered(
@@ -195,8 +189,6 @@ def _builder(spec: TopicSpec, description: RobotDescription, ids: IdMap,
 def _uwb_builder(
     spec: TopicSpec, ids: IdMap, where: str
 ) -> Callable[[Any, float, int], list[Sample]]:
-    from tensegrity_gym.model.samples import UwbRangeSample
-
     f = spec.fields
     scale = unit_scale(spec.units, "length", f"{where}.units")
 
@@ -204,10 +196,7 @@ def _uwb_builder(
         node = np.atleast_1d(_get(msg, f["node"] or "", where))
         anchor = np.atleast_1d(_get(msg, f["anchor"] or "", where))
         ranges = np.atleast_1d(np.asarray(_get(msg, f["range"] or "", where), dtype=np.float64))
-        from hardware.lab.ranges import _plain
-
-        i = np.array([ids.modules.get(_plain(x), -1) for x in node.tolist()], dtype=np.intp)
-        j = np.array([ids.modules.get(_plain(x), -1) for x in anchor.tolist()], dtype=np.intp)
+        i, j = ids.module_ids(node), ids.module_ids(anchor)
         keep = (i >= 0) & (j >= 0) & (i != j) & np.isfinite(ranges)
         if not keep.any():
             return []
