@@ -29,7 +29,13 @@ from estimation.uwb_calibration.floor import (
 from estimation.uwb_calibration.geometry import chiral_quadruples, signed_volumes
 from estimation.uwb_calibration.lm import global_covariance
 from estimation.uwb_calibration.result import CalibrationError, CalibrationResult, residual_stats
-from estimation.uwb_calibration.rounds import jump_outliers, merge_rounds, range_table, sample_rows
+from estimation.uwb_calibration.rounds import (
+    at_sample_times,
+    jump_outliers,
+    merge_rounds,
+    range_table,
+    sample_rows,
+)
 from estimation.uwb_calibration.solve import Run, refine, refine_free, rested, solve_table
 from estimation.uwb_calibration.timing import fitted_to_rates
 from estimation.uwb_calibration.verdict import judge
@@ -141,7 +147,7 @@ def _solved_and_framed(
     # The solve's dense blocks are a few hundred rows: BLAS threads only get in the way.
     with single_threaded_blas():
         solved = solve_table(run)
-        carried = known is None and not rested(solved, table.n_nodes)
+        carried = known is None and not rested(solved)
         if known is not None:
             solved, to_lab = _with_known(run, solved, known)
         elif carried:
@@ -240,8 +246,8 @@ def _table(
     config: CalibrationConfig,
     rounds: ArrayLike | None,
 ) -> tuple[RangeTable, CalibrationConfig, RangingRates]:
-    """The rows as a table of samples, the settings fitted to the rows' ranging rates,
-    and those rates."""
+    """The rows as a table of samples (each range moved to its sample's time), the
+    settings fitted to the rows' ranging rates, and those rates."""
     n_anchors = len(description.anchors)
     if n_anchors < 4:
         raise CalibrationError(
@@ -261,7 +267,11 @@ def _table(
             f"range {config.min_anchor_ranges} anchors, over which the robot does not "
             "stand still"
         )
-    return merge_rounds(table, config.sample_period), config, rates
+    table = merge_rounds(table, config.sample_period)
+    # Each range moved to its sample's time, the rates fitted to the screened ranges.
+    anchor_jumps, robot_jumps = jump_outliers(table, config.jump_threshold)
+    table = at_sample_times(table, config.rate_span, (~anchor_jumps, ~robot_jumps))
+    return table, config, rates
 
 
 def _usable(

@@ -74,6 +74,11 @@ class CalibrationConfig:
     shorter than a round keeps one round a sample. The least: where the data's
     ranging rate leaves too few anchors per module in it (a lab's hardware ranging
     each pair about once a second), it is lengthened to what the rate needs."""
+    rate_span: float = 1.0
+    """Seconds on either side of a range over which its pair's rate of change is
+    fitted, to move the range to its sample's time
+    (:func:`~estimation.uwb_calibration.rounds.at_sample_times`); lengthened to hold
+    about three of the pair's ranges where a pair ranges slowly."""
     first_span: float = 2.0
     """Seconds of the run the solve's first growth stage spans (then 2, 4, 8 times
     that...); lengthened to 10 samples where the samples are long."""
@@ -108,6 +113,6 @@ class CalibrationConfig:
         if self.n_starts < 1 or self.max_samples < 1 or self.min_samples < 1:
             raise ValueError("n_starts, max_samples and min_samples must be >= 1")
         for name in ("range_sigma", "bar_sigma", "loss_scale", "window", "floor_slab",
-                     "sample_period", "first_span"):  # fmt: skip
+                     "sample_period", "first_span", "rate_span"):  # fmt: skip
             if not getattr(self, name) > 0.0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")

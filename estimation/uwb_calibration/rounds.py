@@ -21,8 +21,10 @@ if TYPE_CHECKING:
 
 __all__ = [
     "RangeTable",
+    "at_sample_times",
     "group_rounds",
     "jump_outliers",
+    "local_rates",
     "merge_rounds",
     "range_table",
     "sample_rows",
@@ -46,11 +48,15 @@ class RangeTable:
     a_module: NDArray[np.intp]
     a_range: NDArray[np.float64]
     """(k,) robot-anchor rows: round, anchor, robot module, uncorrected range (m)."""
+    a_time: NDArray[np.float64]
+    """(k,) time (s) of each robot-anchor range."""
     r_round: NDArray[np.intp]
     r_first: NDArray[np.intp]
     r_second: NDArray[np.intp]
     r_range: NDArray[np.float64]
     """(q,) robot-robot rows: round, the two robot modules, uncorrected range (m)."""
+    r_time: NDArray[np.float64]
+    """(q,) time (s) of each robot-robot range."""
     dropped: int = 0
     """Rows left out: not finite, or between two anchors (they carry no robot)."""
 
@@ -73,8 +79,8 @@ class RangeTable:
         dropped = self.dropped + int(np.count_nonzero(~a) + np.count_nonzero(~r))
         return RangeTable(
             self.n_nodes, self.n_anchors, self.round_times,
-            self.a_round[a], self.a_anchor[a], self.a_module[a], self.a_range[a],
-            self.r_round[r], self.r_first[r], self.r_second[r], self.r_range[r],
+            self.a_round[a], self.a_anchor[a], self.a_module[a], self.a_range[a], self.a_time[a],
+            self.r_round[r], self.r_first[r], self.r_second[r], self.r_range[r], self.r_time[r],
             dropped,
         )  # fmt: skip
 
@@ -178,8 +184,8 @@ def _split(
     robot = ~to_anchor
     return RangeTable(
         n, n_anchors, np.asarray(times, dtype=np.float64),
-        rid[to_anchor], anchor, module, m[to_anchor],
-        rid[robot], np.minimum(i, j)[robot], np.maximum(i, j)[robot], m[robot],
+        rid[to_anchor], anchor, module, m[to_anchor], t[to_anchor],
+        rid[robot], np.minimum(i, j)[robot], np.maximum(i, j)[robot], m[robot], t[robot],
         dropped,
     )  # fmt: skip
 
@@ -239,3 +245,81 @@ def jump_outliers(
     robot = _jumps(table.r_first * n + table.r_second, table.r_round, table.r_range,
                    neighbours, threshold)  # fmt: skip
     return anchor, robot
+
+
+_MOST_NEIGHBOURS = 256
+"""Rows on either side a rate fit looks at, at most (a pair ranging 128 Hz over 2 s)."""
+
+
+def local_rates(
+    pair: NDArray[np.intp],
+    t: NDArray[np.float64],
+    values: NDArray[np.float64],
+    span: float,
+    fit: NDArray[np.bool_],
+) -> NDArray[np.float64]:
+    """Each row's rate of change (m/s), (k,): the least-squares slope of its pair's
+    ``values`` over times ``t`` within ``span`` s of it, of the rows where ``fit`` holds
+    (0 where they have fewer than two times)."""
+    k = len(values)
+    if k == 0:
+        return np.zeros(0)
+    order = np.lexsort((t, pair))
+    p, ts, v, good = pair[order], t[order], values[order], fit[order]
+    # Each row's window in the sorted rows, found on a key that keeps pairs apart.
+    stride = float(np.ptp(ts)) + 2.0 * span + 1.0
+    key = p * stride + (ts - ts.min())
+    lo = np.searchsorted(key, key - span, side="left")
+    hi = np.searchsorted(key, key + span, side="right")
+    rows = np.arange(k)
+    reach = min(int(max(np.max(hi - 1 - rows), np.max(rows - lo))), _MOST_NEIGHBOURS)
+    sums = np.zeros((5, k))  # count, sum dt, sum v, sum dt^2, sum dt v (dt from the row)
+    for shift in range(-reach, reach + 1):
+        other = rows + shift
+        inside = (other >= lo) & (other < hi)
+        o = np.where(inside, other, rows)
+        inside &= good[o]
+        dt = np.where(inside, ts[o] - ts, 0.0)
+        w = inside.astype(np.float64)
+        sums += np.stack([w, dt, w * v[o], dt * dt, dt * v[o]])
+    n, st, sv, stt, stv = sums
+    spread = n * stt - st * st
+    slope = np.where(spread > 1e-12, (n * stv - st * sv) / np.maximum(spread, 1e-12), 0.0)
+    out = np.empty(k)
+    out[order] = slope
+    return out
+
+
+def at_sample_times(
+    table: RangeTable,
+    span: float,
+    fit: tuple[NDArray[np.bool_], NDArray[np.bool_]] | None = None,
+) -> RangeTable:
+    """The table with each range moved to its sample's time (``round_times``) along
+    its pair's local rate of change, fitted over ``span`` s on either side to the
+    robot-anchor and robot-robot rows ``fit`` (default all: outliers left out, the
+    rates they would bend are sound).
+
+    A sample pools ranges taken up to its period apart as if the robot stood still;
+    where ranging is slow (a lab's 1 Hz pairs, samples of about a second) a carried
+    robot moves tens of centimetres within one. Each pair's ranges change smoothly,
+    so the range it would have read at the sample's time is its own plus its rate
+    times the time between; a fit over several of the pair's ranges keeps the rate's
+    noise small."""
+    n = table.n_nodes
+    a_fit, r_fit = (
+        fit
+        if fit is not None
+        else (np.ones(len(table.a_range), dtype=bool), np.ones(len(table.r_range), dtype=bool))
+    )
+    a_rate = local_rates(table.a_anchor * n + table.a_module, table.a_time, table.a_range,
+                          span, a_fit)  # fmt: skip
+    r_rate = local_rates(table.r_first * n + table.r_second, table.r_time, table.r_range,
+                          span, r_fit)  # fmt: skip
+    a_shift = table.round_times[table.a_round] - table.a_time
+    r_shift = table.round_times[table.r_round] - table.r_time
+    return replace(
+        table,
+        a_range=table.a_range + a_rate * a_shift, a_time=table.a_time + a_shift,
+        r_range=table.r_range + r_rate * r_shift, r_time=table.r_time + r_shift,
+    )  # fmt: skip

@@ -29,6 +29,8 @@ _START_MODULES = 6
 of the robot's where it has fewer than eight)."""
 _FIRST_SAMPLES = 10
 """Samples (of the fitted period) the growth's first stage spans at least."""
+_RATE_RANGES = 3.0
+"""A pair's ranges each rate fit spans, in expectation, at least."""
 
 
 @dataclass(frozen=True)
@@ -75,8 +77,9 @@ def _seconds_for(distinct: float, of: int, rate: float) -> float:
 def fitted_to_rates(
     config: CalibrationConfig, table: RangeTable, n_anchors: int
 ) -> tuple[CalibrationConfig, RangingRates]:
-    """``config`` with ``sample_period``, ``window`` and ``first_span`` lengthened where
-    ``table``'s rates (rows not yet merged into samples) need it; and the rates."""
+    """``config`` with ``sample_period``, ``window``, ``first_span`` and ``rate_span``
+    lengthened where ``table``'s rates (rows not yet merged into samples) need it; and
+    the rates."""
     rates = ranging_rates(table)
     needed = _MARGIN * config.min_anchor_ranges
     period = _seconds_for(needed, n_anchors, rates.module)
@@ -86,5 +89,9 @@ def fitted_to_rates(
     period = config.sample_period if not np.isfinite(period) else max(config.sample_period, period)
     window = config.window if not np.isfinite(window) else max(config.window, window, period)
     first = max(config.first_span, _FIRST_SAMPLES * period)
-    fitted = replace(config, sample_period=period, window=window, first_span=first)
+    span = config.rate_span
+    if rates.pair > 0.0:
+        span = max(span, 0.5 * _RATE_RANGES / rates.pair)
+    fitted = replace(config, sample_period=period, window=window, first_span=first,
+                     rate_span=span)  # fmt: skip
     return fitted, rates

@@ -43,11 +43,7 @@ def _doubts(result: CalibrationResult, config: CalibrationConfig) -> list[str]:
         )
     worst = float(np.max(result.anchor_sigma))
     if worst > config.max_anchor_sigma:
-        a = int(np.argmax(result.anchor_sigma))
-        out.append(
-            f"anchor {a} fixed only to +-{1e3 * worst:.0f} mm "
-            "(move the robot farther across the anchors)"
-        )
+        out.append(_loose_anchor(result, config))
     thin = sum(s.count < config.min_pair_ranges for row in result.pair_stats for s in row)
     if thin:
         out.append(f"{thin} robot-anchor pairs with fewer than {config.min_pair_ranges} ranges")
@@ -71,6 +67,21 @@ def _doubts(result: CalibrationResult, config: CalibrationConfig) -> list[str]:
             "handedness (a mistyped hint, or anchors mislabelled)"
         )
     return out + _floor_doubts(result, config)
+
+
+def _loose_anchor(result: CalibrationResult, config: CalibrationConfig) -> str:
+    """The worst-fixed anchor, with both remedies: an anchor's standard error falls as
+    one over the root of its ranges' count (more ranges: a longer recording, faster
+    ranging) and with the robot's travel across it (better geometry)."""
+    a = int(np.argmax(result.anchor_sigma))
+    worst = float(result.anchor_sigma[a])
+    count = result.anchor_stats[a].count
+    needed = int(np.ceil(count * (worst / config.max_anchor_sigma) ** 2))
+    return (
+        f"anchor {a} fixed only to +-{1e3 * worst:.0f} mm by its {count} ranges (about "
+        f"{needed} would fix it to {1e3 * config.max_anchor_sigma:.0f} mm: record longer or "
+        "range faster, or move the robot farther across the anchors)"
+    )
 
 
 _HINT = "give anchor heights, e.g. floor hint '0=4.7 1=4.5 2=0.4' (m above the floor)"

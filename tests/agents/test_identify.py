@@ -255,6 +255,7 @@ def test_a_state_set_in_flight_steps_as_the_run_it_was_taken_from() -> None:
     assert np.abs(kick).max() < 5e-4
 
 
+@pytest.mark.slow  # 48 fits of a 10 s recording; the default run fits others
 def test_a_factor_that_ends_at_its_bound_is_named_not_reported_as_measured() -> None:
     """A robot whose cables are three times as stiff as its description, fitted within
     the search's factor of two: the stiffness ends at the bound, and the result and

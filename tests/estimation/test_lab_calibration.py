@@ -21,13 +21,21 @@ from estimation.uwb_calibration.geometry import (
     rigid_alignment_errors,
     tilt_degrees,
 )
-from estimation.uwb_calibration.rounds import range_table, sample_rows
+from estimation.uwb_calibration.rounds import (
+    at_sample_times,
+    local_rates,
+    merge_rounds,
+    range_table,
+    sample_rows,
+)
 from estimation.uwb_calibration.timing import fitted_to_rates
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.sim.carried import LAB_ROOM, carried_recording
 from tests.estimation.test_uwb_calibration import FAST, roll_frames, uwb_run
 
 if TYPE_CHECKING:
+    from numpy.typing import NDArray
+
     from estimation.uwb_calibration import CalibrationResult
     from tensegrity_gym.model.description import RobotDescription
     from tensegrity_gym.sim.carried import CarriedRecording
@@ -140,6 +148,52 @@ def test_time_constants_follow_the_rates(
     table = range_table(t, i, j, m, n_nodes=6, n_anchors=8, round_gap=0.03, rounds=index)
     fitted, _ = fitted_to_rates(FAST, table, 8)
     assert fitted.sample_period == FAST.sample_period and fitted.window == FAST.window
+    assert fitted.rate_span == FAST.rate_span
+
+
+def _slopes_one_by_one(pair: NDArray[np.intp], t: NDArray[np.float64],
+                       m: NDArray[np.float64], span: float,
+                       fit: NDArray[np.bool_]) -> NDArray[np.float64]:  # fmt: skip
+    """The reference: np.polyfit over each row's window, row by row."""
+    out = np.zeros(len(m))
+    for k in range(len(m)):
+        near = (pair == pair[k]) & (np.abs(t - t[k]) <= span) & fit
+        if len(np.unique(t[near])) >= 2:
+            out[k] = np.polyfit(t[near] - t[k], m[near], 1)[0]
+    return out
+
+
+def test_local_rates_match_a_row_by_row_fit() -> None:
+    """The vectorised rate fit equals a per-row least-squares line, outliers left out."""
+    rng = np.random.default_rng(4)
+    k = 400
+    pair = rng.integers(0, 7, k)
+    t = np.sort(rng.uniform(0.0, 30.0, k))
+    m = 3.0 + 0.2 * np.sin(t + pair) + rng.normal(0.0, 0.03, k)
+    fit = rng.random(k) > 0.1
+    fast = local_rates(pair, t, m, 1.3, fit)
+    np.testing.assert_allclose(fast, _slopes_one_by_one(pair, t, m, 1.3, fit), atol=1e-9)
+
+
+def test_ranges_move_to_their_samples_time() -> None:
+    """A pair whose range grows 0.4 m/s, ranged about once a second and pooled into
+    1 s samples: each range is moved to its sample's time; a multipath range (left
+    out of the fit) bends no rate."""
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 20.0, 0.9) + rng.uniform(0.0, 0.1, 23)
+    m = 5.0 + 0.4 * t
+    m[10] += 1.0  # a reflected path
+    i, j = np.full(len(t), 6 + 2), np.full(len(t), 1)  # anchor 2, module 1
+    table = merge_rounds(range_table(t, i, j, m, n_nodes=6, n_anchors=4, round_gap=0.01), 1.0)
+    good = np.arange(len(t)) != 10
+    moved = at_sample_times(table, 1.5, (good, np.zeros(0, dtype=bool)))
+    sample_t = table.round_times[table.a_round]
+    assert np.max(np.abs(sample_t - t)) > 0.3  # the samples pool ranges far apart
+    np.testing.assert_allclose(moved.a_range[good], 5.0 + 0.4 * sample_t[good], atol=1e-9)
+    np.testing.assert_allclose(moved.a_time, sample_t)
+    assert abs(moved.a_range[10] - (6.0 + 0.4 * sample_t[10])) < 1e-9
+    bent = at_sample_times(table, 1.5)  # the outlier in the fit: its neighbours move off
+    assert np.max(np.abs(bent.a_range[good] - moved.a_range[good])) > 0.01
 
 
 @pytest.mark.parametrize(

@@ -309,7 +309,9 @@ def test_a_bag_without_a_mapped_topic_is_one_line(recorded: Path, tmp_path: Path
         import_recording([tmp_path / "lab.bag"], lab_map, d, calibration, tmp_path / "bag")
 
 
-def test_estimate_reads_a_lab_bag_through_its_map(recorded: Path, tmp_path: Path) -> None:
+def test_estimate_reads_a_lab_bag_through_its_map(
+    recorded: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """``--lab-map``: the lab's bag imported to a temporary bag, estimated, removed."""
     import tempfile
 
@@ -318,7 +320,11 @@ def test_estimate_reads_a_lab_bag_through_its_map(recorded: Path, tmp_path: Path
     _lab_bag(tmp_path / "lab.bag", recorded)
     with BagReader(recorded) as reader:
         (tmp_path / "map.yaml").write_text(_topic_map(reader.description))
+    # A temporary folder of this test's own: other workers import at the same time.
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
     before = set(Path(tempfile.gettempdir()).glob("tensegrity-gym-import-*"))
+    assert tempfile.gettempdir() == str(tmp_path / "tmp") and not before
     args = ["estimate", str(tmp_path / "lab.bag"), "--lab-map", str(tmp_path / "map.yaml"),
             "--out", str(tmp_path / "out"), "--no-progress"]  # fmt: skip
     assert main(args) == 0
