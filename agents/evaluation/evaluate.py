@@ -55,6 +55,7 @@ __all__ = [
     "evaluate_policies",
     "evaluate_policy",
     "gait_policy",
+    "goal_reached",
     "load_policy",
     "random_policy",
 ]
@@ -210,6 +211,9 @@ class EpisodeResult:
     :func:`true_progress`."""
     rolls: int
     success: bool
+    """A go-to id: the true CoM came within the task's success radius of a goal in force
+    (a goal reached in truth, whatever the estimate said); a rolling id: a progress of
+    at least one rod length."""
     com_error_mean: float
     """Mean distance between estimated and true CoM (m)."""
     reinitialisations: int
@@ -218,6 +222,15 @@ class EpisodeResult:
     true_path: NDArray[np.float64] = field(repr=False)
     est_path: NDArray[np.float64] = field(repr=False)
     errors: NDArray[np.float64] = field(repr=False)
+    seconds: float = float("nan")
+    """Simulated seconds the episode lasted (steps times the control period)."""
+    rod_length: float = float("nan")
+    """The robot's mean rod length (m): its body length, the unit of its speed."""
+
+    @property
+    def speed(self) -> float:
+        """Progress per second (m/s)."""
+        return self.progress / self.seconds if self.seconds > 0 else float("nan")
 
 
 def _no_reset(episode_seed: int) -> None:
@@ -383,6 +396,14 @@ def true_progress(
     return float((true[-1, :2] - true[0, :2]) @ heading)
 
 
+def goal_reached(true: NDArray[np.float64], goals: NDArray[np.float64], radius: float) -> bool:
+    """Whether the true CoM, ``true`` (T + 1, 3), came within ``radius`` (m) of the goal
+    in force, ``goals`` (T, 2) (the one before each step), after some step."""
+    if len(goals) == 0:
+        return False
+    return bool(np.min(np.linalg.norm(goals - true[1:, :2], axis=1)) <= radius)
+
+
 def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> EpisodeResult:
     inner = cast("TensegrityEnv", env.unwrapped)
     d = inner.backend.description
@@ -415,12 +436,18 @@ def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> E
         done = terminated or truncated
     true = np.array(true_path)
     est = np.array(est_path)
-    progress = true_progress(true, heading, None if goals is None else np.array(goals))
+    goal_points = None if goals is None else np.array(goals)
+    progress = true_progress(true, heading, goal_points)
     errors = np.linalg.norm(est - true, axis=-1)
+    radius = getattr(inner.task, "success_radius", None)
+    if goal_points is not None and radius is not None:
+        success = goal_reached(true, goal_points, radius)
+    else:
+        success = progress >= d.characteristic_length
     return EpisodeResult(
         progress=progress,
         rolls=count_rolls(np.array(node_z)),
-        success=progress >= d.characteristic_length,
+        success=success,
         com_error_mean=float(errors.mean()),
         reinitialisations=reinit,
         diverged=diverged,
@@ -428,6 +455,8 @@ def run_episode(env: gym.Env[Any, Any], act: Callable[..., Any], seed: int) -> E
         true_path=true,
         est_path=est,
         errors=errors,
+        seconds=(len(true) - 1) * inner.backend.control_period,
+        rod_length=d.characteristic_length,
     )
 
 
@@ -571,6 +600,11 @@ def summarise(results: Sequence[EpisodeResult]) -> dict[str, Any]:
         # so this is its progress had the goal lain its way.
         "distance_mean_m": round(float(np.mean([_distance(r.true_path) for r in results])), 3),
         "success_rate": round(float(np.mean([r.success for r in results])), 3),
+        "speed_m_per_s": round(float(np.mean([r.speed for r in results])), 4),
+        # Rod lengths per second: speeds of robots of any size side by side.
+        "speed_rod_lengths_per_s": round(
+            float(np.mean([r.speed / r.rod_length for r in results])), 4
+        ),
         "rolls_per_episode": round(float(np.mean([r.rolls for r in results])), 2),
         "com_error_mean_m": round(float(np.mean([r.com_error_mean for r in results])), 4),
         "reinitialisations": int(sum(r.reinitialisations for r in results)),

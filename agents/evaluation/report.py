@@ -34,7 +34,7 @@ if TYPE_CHECKING:
 
     from agents.evaluation.evaluate import EpisodeResult, LoadedPolicy
 
-__all__ = ["check_sentence", "write_report"]
+__all__ = ["check_sentence", "steering_sentence", "write_report"]
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +46,9 @@ gait's on the same episodes (any positive progress where the gait made none). Th
 rolls along a heading fixed to the robot's body, so toward goals drawn at random its
 expected progress is nil and a few episodes' mean is mostly noise: the share of the
 distance it rolls its own way (``progress_vs_gait_distance``) is the stricter yardstick."""
+TARGET_STEERING_SHARE = 1.1
+"""The yardstick that counts: a trained policy's progress toward the goal, at least this
+share of the steering gait's (the best hand gait: it aims) on the same episodes."""
 MIN_GAIT_DISTANCE = 0.01
 """m: a gait that rolled less than this is given no share of its distance."""
 
@@ -241,6 +244,9 @@ def _checks(
         ratio = row["progress_mean_m"] / max(abs(random_progress), 1e-3)
         checks[name] = {
             "condition": cond,
+            "progress_m": row["progress_mean_m"],
+            "speed_rod_lengths_per_s": row.get("speed_rod_lengths_per_s"),
+            "success_rate": row.get("success_rate"),
             "progress_vs_random": round(ratio, 1),
             "rolls_per_episode": row["rolls_per_episode"],
             "rolls_target_met": row["rolls_per_episode"] >= TARGET_ROLLS,
@@ -249,10 +255,24 @@ def _checks(
         if gait is not None:
             checks[name].update(_against_gait(row["progress_mean_m"], gait))
         if steering is not None:
-            g = steering["progress_mean_m"]
-            checks[name]["steering_progress_m"] = g
-            checks[name]["progress_vs_steering"] = _share(row["progress_mean_m"], g)
+            checks[name].update(_against_steering(row["progress_mean_m"], steering))
     return checks
+
+
+def _against_steering(mine: float, steering: dict[str, Any]) -> dict[str, Any]:
+    """A policy's progress toward the goal (m) against the steering gait's row: the
+    share of its progress, whether that meets :data:`TARGET_STEERING_SHARE` (on the
+    share as printed; where the gait went nowhere, any progress of the policy's own),
+    and the gait's speed and success beside."""
+    g = steering["progress_mean_m"]
+    share = _share(mine, g)
+    return {
+        "steering_progress_m": g,
+        "progress_vs_steering": share,
+        "steering_target_met": mine > 0 and (share is None or share >= TARGET_STEERING_SHARE),
+        "steering_speed_rod_lengths_per_s": steering.get("speed_rod_lengths_per_s"),
+        "steering_success_rate": steering.get("success_rate"),
+    }
 
 
 def _share(mine: float, theirs: float) -> float | None:
@@ -303,7 +323,34 @@ def _steering_share(check: dict[str, Any]) -> str:
         return ""
     g = check["steering_progress_m"]
     return f" The steering gait made {g:.2f} m toward the goal" + (
-        f"; the policy made {share:.0%} of that." if share is not None else "."
+        f"; the policy made {share:.0%} of that (target {TARGET_STEERING_SHARE:.0%}: "
+        f"{_met(check['steering_target_met'])})."
+        if share is not None
+        else f" (target, progress of its own: {_met(check['steering_target_met'])})."
+    )
+
+
+def _speed(value: float | None) -> str:
+    return "-" if value is None or not np.isfinite(value) else f"{value:.3f}"
+
+
+def _percent(share: float | None) -> str:
+    return "-" if share is None else f"{100 * share:.0f} %"
+
+
+def steering_sentence(name: str, check: dict[str, Any]) -> str:
+    """The headline's sentence for one trained policy against the steering gait: the
+    progress toward the goal, its share, the speed in rod lengths per second and the
+    success, each beside the gait's."""
+    share = check["progress_vs_steering"]
+    of = f"{share:.0%} of" if share is not None else "against"
+    return (
+        f"**{name}**, under `{check['condition']}`: {check['progress_m']:.2f} m toward the "
+        f"goal, {of} the steering gait's {check['steering_progress_m']:.2f} m (target "
+        f"{TARGET_STEERING_SHARE:.0%}: {_met(check['steering_target_met'])}); "
+        f"{_speed(check['speed_rod_lengths_per_s'])} rod lengths/s against "
+        f"{_speed(check['steering_speed_rod_lengths_per_s'])}; success "
+        f"{_percent(check['success_rate'])} against {_percent(check['steering_success_rate'])}."
     )
 
 
@@ -340,6 +387,11 @@ def _headline(checks: dict[str, Any], results: dict[str, Any]) -> list[str]:
     if not (checks or both):
         return []
     lines = ["## Headline", ""]
+    # The yardstick first: the best hand gait the robot has.
+    against = [f"- {steering_sentence(name, c)}" for name, c in checks.items()
+               if "steering_progress_m" in c]  # fmt: skip
+    if against:
+        lines += [*against, ""]
     if both:
         o = results["trained on oracle"].get("ukf")
         u = results["trained on ukf"].get("ukf")
@@ -367,24 +419,26 @@ def _markdown(report: dict[str, Any], training_plot: bool) -> str:
         f"{report['seed'] + report['episodes'] - 1}, the same for every row). Progress is the "
         "true CoM's displacement along the goal heading over the episode (a Roll id), or "
         "its approach to the goal points, each up to the step that reached it (a GoTo id); "
-        "success is a "
-        "progress of at least one rod length; distance is its straight-line displacement in "
-        "whatever direction; a roll is a tip onto a new base triangle.",
+        "speed is progress per second, in rod lengths; success is the true CoM within the "
+        "task's radius of a goal (a GoTo id) or a progress of at least one rod length (a "
+        "Roll id); distance is its straight-line displacement in whatever direction; a "
+        "roll is a tip onto a new base triangle.",
         "",
     ]
     lines += _headline(report["checks"], report["results"])
     lines += [
         "## Every policy under every condition",
         "",
-        "| policy | condition | progress (m) | distance (m) | success | rolls / ep. "
-        "| CoM error (cm) | re-inits | divergences | return |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| policy | condition | progress (m) | speed (rod lengths/s) | distance (m) "
+        "| success | rolls / ep. | CoM error (cm) | re-inits | divergences | return |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for policy, by_cond in report["results"].items():
         for cond, r in by_cond.items():
             lines.append(
                 f"| {policy} | {cond} | {r['progress_mean_m']:.3f} ± {r['progress_std_m']:.3f} "
-                f"| {r['distance_mean_m']:.2f} | {100 * r['success_rate']:.0f} % "
+                f"| {_speed(r.get('speed_rod_lengths_per_s'))} | {r['distance_mean_m']:.2f} "
+                f"| {100 * r['success_rate']:.0f} % "
                 f"| {r['rolls_per_episode']:.1f} "
                 f"| {100 * r['com_error_mean_m']:.2f} | {r['reinitialisations']} "
                 f"| {r['divergences']} | {r['return_mean']:.1f} |"

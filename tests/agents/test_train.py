@@ -15,9 +15,16 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 import tensegrity_gym
 from agents.demo import across_seeds, against_reference, run_main_job_seeds
-from agents.evaluation.evaluate import CONDITIONS, count_rolls, evaluate_policy, load_policy
+from agents.evaluation.evaluate import (
+    CONDITIONS,
+    count_rolls,
+    evaluate_policy,
+    goal_reached,
+    load_policy,
+)
 from agents.evaluation.report import _gait_share, _monitor_curve, write_report
 from agents.training.train import load_hyperparams, parse_config_value, train
+from tensegrity_gym.model.description import load_robot
 
 THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
 
@@ -277,6 +284,18 @@ def test_count_rolls_counts_net_tips_onto_new_base_triangles() -> None:
     assert count_rolls(heights([(0, 1, 2), (1, 2, 3)], repeat=2)) == 0  # too brief to count
 
 
+def test_a_goal_counts_as_reached_in_truth_only() -> None:
+    """Success on a go-to id: the true CoM within the radius of the goal in force after
+    a step; a goal passed before it was in force, or an estimate near it, does not count."""
+    true = np.array([[0.0, 0.0, 0.2], [0.5, 0.0, 0.2], [0.9, 0.0, 0.2], [0.9, 0.5, 0.2]])
+    goals = np.array([[1.0, 0.0], [1.0, 0.0], [3.0, 0.0]])
+    assert goal_reached(true, goals, 0.15)  # after the second step: 0.1 m from it
+    assert not goal_reached(true, goals, 0.05)
+    far = np.array([[0.9, 0.0], [5.0, 5.0], [5.0, 5.0]])  # near the CoM only before step 1
+    assert not goal_reached(true, far, 0.15)
+    assert not goal_reached(true[:1], np.zeros((0, 2)), 1.0)
+
+
 def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Path) -> None:
     report = write_report(
         [tiny_run], tmp_path / "report", episodes=1, conditions=("oracle", "ukf_4_anchors")
@@ -311,7 +330,17 @@ def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Pat
         "; the scripted gait made no progress toward the goal (-0.50 m; target, progress of "
         "its own: NOT met), and "
     )
+    # Speed in rod lengths per second: the progress over the episode's seconds.
+    length = load_robot("three_bar").characteristic_length
+    assert steering["speed_m_per_s"] == pytest.approx(steering["progress_mean_m"] / 30.0, rel=0.02)
+    assert steering["speed_rod_lengths_per_s"] == pytest.approx(
+        steering["speed_m_per_s"] / length, rel=0.02
+    )
+    assert check["steering_progress_m"] == steering["progress_mean_m"]
     text = (tmp_path / "report" / "report.md").read_text()
+    headline = text.split("## Headline")[1].split("##")[0]
+    assert "- **trained on oracle**, under `oracle`:" in headline
+    assert "the steering gait's" in headline and "rod lengths/s" in headline
     assert "of the scripted gait's progress" in text and "| scripted gait | oracle |" in text
     assert "of the distance the gait rolls its own way" in text
     assert "| trained on oracle | ukf_4_anchors |" in text and "![CoM paths]" in text
@@ -577,7 +606,7 @@ def test_a_policy_is_set_against_the_gait_by_its_targets(
 def test_a_policy_is_set_against_the_steering_gait_where_there_is_one(
     steering: float, share: float | None
 ) -> None:
-    from agents.evaluation.report import _checks, check_sentence
+    from agents.evaluation.report import _checks, check_sentence, steering_sentence
 
     def row(progress: float) -> dict[str, float]:
         return {"progress_mean_m": progress, "rolls_per_episode": 3.0, "distance_mean_m": 1.0}
@@ -591,3 +620,19 @@ def test_a_policy_is_set_against_the_steering_gait_where_there_is_one(
     sentence = check_sentence(check)
     assert f"steering gait made {steering:.2f} m" in sentence
     assert ("the policy made 80% of that" in sentence) is (share is not None)
+    # 80 % of the gait is short of the 110 % target; ahead of a gait that went nowhere
+    # any progress of its own meets it.
+    assert check["steering_target_met"] is (share is None)
+    assert ("target 110%: NOT met" in sentence) is (share is not None)
+    headline = steering_sentence("trained on ukf", check)
+    assert headline.startswith("**trained on ukf**, under `ukf`: 0.80 m toward the goal, ")
+    assert "rod lengths/s against -" in headline and "nan" not in headline
+    table["trained on ukf"]["ukf"] |= {"speed_rod_lengths_per_s": 0.02, "success_rate": 0.5}
+    table["steering gait"]["ukf"] |= {"speed_rod_lengths_per_s": 0.01, "success_rate": 0.25}
+    table["steering gait"]["ukf"]["progress_mean_m"] = 0.7
+    ahead = _checks(table, ["trained on ukf"], ["ukf"])["trained on ukf"]
+    assert ahead["progress_vs_steering"] == 1.14 and ahead["steering_target_met"]
+    assert steering_sentence("p", ahead).endswith(
+        "114% of the steering gait's 0.70 m (target 110%: met); 0.020 rod lengths/s against "
+        "0.010; success 50 % against 25 %."
+    )

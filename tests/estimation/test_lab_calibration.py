@@ -30,7 +30,7 @@ from estimation.uwb_calibration.rounds import (
 )
 from estimation.uwb_calibration.timing import fitted_to_rates
 from tensegrity_gym.model.description import load_robot
-from tensegrity_gym.sim.carried import LAB_ROOM, carried_recording
+from tensegrity_gym.sim.carried import LAB_ROOM, LabRanging, carried_recording
 from tests.estimation.test_uwb_calibration import FAST, roll_frames, uwb_run
 
 if TYPE_CHECKING:
@@ -76,6 +76,20 @@ def test_carried_robot_with_imu_and_one_height(
     assert r.extras["sample_period"] > 0.3  # lengthened for 1-3 Hz pairs
     assert np.count_nonzero(r.robot_pair_count) == 0
     assert "floor" not in r.verdict  # the floor is settled: no doubt about it
+
+
+@pytest.mark.slow  # a recording and solve of its own; the bench's 1 Hz case covers it too
+def test_carried_robot_ranged_at_one_hz_per_pair(superball: RobotDescription) -> None:
+    """The issue's slowest ranging, every pair at exactly 1 Hz: a sample lasts about
+    1 s, over which the carried robot moves some 30 cm; the ranges moved to their
+    sample's time keep the anchors within 10 cm."""
+    ranging = replace(LabRanging(), pair_rate=(1.0, 1.0))
+    rec = carried_recording(superball, np.random.default_rng(0), seconds=180.0, ranging=ranging)
+    r = calibrate_samples(rec.uwb + rec.imu, superball, floor_hint="0=4.7")
+    assert r.floor == "gravity+hint"
+    assert r.extras["sample_period"] > 0.8
+    assert np.max(rigid_alignment_errors(r.anchors, rec.anchors)) <= 0.10
+    assert tilt_degrees(r.anchors, rec.anchors) <= 2.0
 
 
 @pytest.mark.slow  # a third solve of the recording: the bench's cases cover it too
