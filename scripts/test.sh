@@ -12,4 +12,5 @@ trap 'rm -rf "$docs_site"' EXIT
 NO_MKDOCS_2_WARNING=1 python -m mkdocs build --strict --quiet --site-dir "$docs_site"
 # pytest exits 5 when it collects nothing: that fails this script, as it should.
 # loadgroup: the tests of one xdist_group (the Ray cluster's) share a worker and its fixture.
-python -m pytest -n 2 --dist loadgroup -q "$@"
+# --durations: the slowest tests of each run, to keep the default run within its budget.
+python -m pytest -n 2 --dist loadgroup -q --durations=15 "$@"

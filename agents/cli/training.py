@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from agents.cli.arguments import (
     Command,
@@ -20,9 +21,6 @@ from agents.cli.arguments import (
     positive_int,
 )
 from agents.cli.errors import log, one_line
-
-if TYPE_CHECKING:
-    import argparse
 
 __all__ = ["COMMANDS"]
 
@@ -122,6 +120,7 @@ def run_demo(args: argparse.Namespace) -> int:
 
 def add_train(tr: argparse.ArgumentParser) -> None:
     """``train``'s options: the env, the algorithm and its hyperparameters, the run."""
+    from agents.training.presets import PRESETS
     from agents.training.train import ALGORITHMS
     from tensegrity_gym.model.randomization import RANDOMIZATIONS
     from tensegrity_gym.model.registry import ESTIMATORS
@@ -159,6 +158,20 @@ def add_train(tr: argparse.ArgumentParser) -> None:
         "keeps them",
     )  # fmt: skip
     tr.add_argument("--out", required=True, help="folder for the run")
+    tr.add_argument(
+        "--preset", choices=sorted(PRESETS), default=None,
+        help="named settings that fill in the options not given: "
+        + "; ".join(f"{k}: {p.about}" for k, p in PRESETS.items()),
+    )  # fmt: skip
+    tr.add_argument(
+        "--resume", action="store_true",
+        help="go on with the run in --out from its newest checkpoint, with its own "
+        "settings (--timesteps: a new total)",
+    )  # fmt: skip
+    tr.add_argument(
+        "--checkpoint-every", type=positive_int, default=50_000,
+        help="steps between the run's checkpoints",
+    )  # fmt: skip
     tr.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_engine(tr)
     add_ray(tr, "step the envs on --workers Ray actors")
@@ -184,26 +197,69 @@ def training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
     return {**kwargs, **given(args, "randomization", "residual_gait", "engine")}
 
 
-def run_train(args: argparse.Namespace) -> int:
-    """``train``: train a policy; print the run's path (130 when interrupted)."""
+_SETTINGS = ("config", "hyperparams", "env_kwargs", "residual_gait", "randomization",
+             "n_envs", "engine", "preset")  # fmt: skip
+"""``train``'s options that a resumed run takes from its own config instead."""
+
+
+def _with_preset(args: argparse.Namespace) -> argparse.Namespace:
+    """``args`` with ``--preset``'s settings where the command line gave none."""
+    from agents.training.presets import preset
+
+    if args.preset is None:
+        return args
+    p = preset(args.preset)
+    kwargs = dict(args.env_kwargs or [])
+    extra = [(k, v) for k, v in p.env_kwargs.items() if k not in kwargs]
+    return argparse.Namespace(**(vars(args) | {
+        "config": args.config or str(p.config),
+        "timesteps": args.timesteps or p.timesteps,
+        "residual_gait": args.residual_gait if args.residual_gait is not None
+        else p.residual_gait,
+        "env_kwargs": [*(args.env_kwargs or []), *extra],
+    }))  # fmt: skip
+
+
+def _train_or_resume(args: argparse.Namespace) -> Path:
+    """The run ``args`` ask for: a new one, or (``--resume``) the one in ``--out`` going
+    on; ValueError for a setting given to a resumed run."""
+    from agents.training.resume import resume
     from agents.training.train import train
 
+    if args.resume:
+        named = [f"--{n.replace('_', '-')}" for n in _SETTINGS if getattr(args, n) is not None]
+        if named:
+            raise ValueError(
+                f"train --resume goes on with the run's own settings: leave out {named}"
+            )
+        return resume(Path(args.out), timesteps=args.timesteps,
+                      checkpoint_every=args.checkpoint_every,
+                      progress_bar=not args.no_progress, ray_address=args.ray,
+                      workers=args.workers)  # fmt: skip
+    args = _with_preset(args)
+    return train(
+        args.env,
+        args.algo,
+        args.estimator,
+        Path(args.out),
+        timesteps=args.timesteps,
+        seed=args.seed,
+        n_envs=args.n_envs,
+        config_file=Path(args.config) if args.config else None,
+        hyperparams=pairs(args.hyperparams, "--hyperparams"),
+        checkpoint_every=args.checkpoint_every,
+        progress_bar=not args.no_progress,
+        env_kwargs=training_env_kwargs(args),
+        ray_address=args.ray,
+        workers=args.workers,
+    )
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """``train``: train a policy, or go on with one; print the run's path (130 when
+    interrupted)."""
     try:
-        path = train(
-            args.env,
-            args.algo,
-            args.estimator,
-            Path(args.out),
-            timesteps=args.timesteps,
-            seed=args.seed,
-            n_envs=args.n_envs,
-            config_file=Path(args.config) if args.config else None,
-            hyperparams=pairs(args.hyperparams, "--hyperparams"),
-            progress_bar=not args.no_progress,
-            env_kwargs=training_env_kwargs(args),
-            ray_address=args.ray,
-            workers=args.workers,
-        )
+        path = _train_or_resume(args)
     except KeyboardInterrupt:
         log.warning("interrupted: the model reached so far is in %s", args.out)
         return 130

@@ -122,12 +122,16 @@ class FiniteGuard(BaseCallback):
     saved on a step count whatever the weights held). An update comes between one
     rollout and the next: a rollout's start sees it before the policy acts on it."""
 
-    def __init__(self, out: Path, every: int) -> None:
+    def __init__(
+        self, out: Path, every: int, kept: tuple[int, Path, Path | None] | None = None
+    ) -> None:
+        """``kept``: the checkpoint a resumed run goes on from (the next is saved past
+        the next multiple of ``every``; a divergence before it falls back to this one)."""
         super().__init__()
         self.out, self.every = out, max(every, 1)
-        self.kept: tuple[int, Path, Path | None] | None = None
+        self.kept = kept
         """The last good checkpoint: its step, model and statistics."""
-        self._saved_at = 0
+        self._saved_at = 0 if kept is None else kept[0]
 
     def _on_step(self) -> bool:
         return True

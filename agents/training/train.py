@@ -35,11 +35,14 @@ if TYPE_CHECKING:
 __all__ = [
     "ALGORITHMS",
     "CONFIG_DIR",
+    "Checkpoint",
+    "RunOptions",
     "TrainConfig",
     "config_entry",
     "load_hyperparams",
     "make_training_env",
     "parse_config_value",
+    "run_training",
     "train",
 ]
 
@@ -282,15 +285,49 @@ def train(
     )
     if workers is not None and workers < 1:
         raise ValueError(f"workers ({workers}) must be positive")
+    return run_training(config, out, RunOptions(checkpoint_every, progress_bar, callbacks),
+                        ray_address, workers)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How a run goes, beside what it trains (:class:`TrainConfig`)."""
+
+    checkpoint_every: int = 50_000
+    progress_bar: bool = True
+    callbacks: Sequence[BaseCallback] = ()
+    start: Checkpoint | None = None
+    """Go on from this checkpoint (a resumed run); None: a new model."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A model saved during a run, and what it needs to go on."""
+
+    steps: int
+    model: Path
+    stats: Path | None
+    """The VecNormalize statistics saved with it; None where the run does not normalise."""
+
+
+def run_training(
+    config: TrainConfig,
+    out: Path,
+    options: RunOptions,
+    ray_address: str | None = None,
+    workers: int | None = None,
+) -> Path:
+    """Run ``config`` into ``out``, here or on ``workers`` actors of the Ray cluster at
+    ``ray_address``; the path of the saved model."""
     if ray_address is None:
-        return _run(config, out, checkpoint_every, progress_bar, callbacks, None)
+        return _run(config, out, options, None)
     from agents.training.cluster import cluster_session, require_ray
 
     with cluster_session(ray_address):
         if workers is None:
             cpus = int(require_ray().cluster_resources().get("CPU", 1))
             workers = max(1, min(config.n_envs, cpus))
-        return _run(config, out, checkpoint_every, progress_bar, callbacks, workers)
+        return _run(config, out, options, workers)
 
 
 def _checked_config(
@@ -335,19 +372,11 @@ def _defaults(algo: str) -> dict[str, Any]:
     return {p.name: p.default for p in parameters if p.default is not inspect.Parameter.empty}
 
 
-def _run(
-    config: TrainConfig,
-    out: Path,
-    checkpoint_every: int,
-    progress_bar: bool,
-    callbacks: Sequence[BaseCallback],
-    workers: int | None,
-) -> Path:
+def _run(config: TrainConfig, out: Path, options: RunOptions, workers: int | None) -> Path:
     """:func:`train`'s run, its arguments checked; ``workers``: Ray actors, or None."""
     import torch
-    from stable_baselines3.common.vec_env import VecNormalize
 
-    from agents.training.guards import FiniteGuard, replace_atomically
+    from agents.training.guards import FiniteGuard
 
     params = dict(config.hyperparams)
     out.mkdir(parents=True, exist_ok=True)
@@ -355,21 +384,25 @@ def _run(
     venv = make_training_env(
         config.env_id, config.n_envs, config.seed, config.env_kwargs, out / "monitor", workers
     )
-    normalize = params.pop("normalize", False)
-    if normalize:
-        norm_kwargs = normalize if isinstance(normalize, dict) else {}
-        venv = VecNormalize(venv, gamma=params.get("gamma", 0.99), **norm_kwargs)
-    model = _make_model(config, params, venv, out)
-    guard = FiniteGuard(out, checkpoint_every)  # it saves the checkpoints, of finite models
+    venv = _normalized(venv, params, options.start)
+    start = options.start
+    model = _make_model(config, params, venv, out) if start is None else _load_model(
+        config, start, venv, out)  # fmt: skip
+    kept = None if start is None else (start.steps, start.model, start.stats)
+    guard = FiniteGuard(out, options.checkpoint_every, kept)  # saves the finite checkpoints
     extra = [] if workers is None else [_restart_logger(venv)]
     interrupted = False
     failure: TrainingDivergedError | None = None
+    # Written first, so that a run killed outright (no finally) can be resumed.
+    _write_record(out, config, start, {"completed_timesteps": int(model.num_timesteps),
+                                       "finished": False})  # fmt: skip
     try:
         model.learn(
-            config.timesteps,
-            callback=[guard, *extra, *callbacks],
-            progress_bar=progress_bar,
+            config.timesteps - (0 if start is None else start.steps),
+            callback=[guard, *extra, *options.callbacks],
+            progress_bar=options.progress_bar,
             tb_log_name=config.algo,
+            reset_num_timesteps=start is None,
         )
     except KeyboardInterrupt:
         interrupted = True
@@ -380,15 +413,15 @@ def _run(
             raise
     finally:
         failure = guard.finish(model, failure)  # model.zip: never one with a NaN in it
-        record = asdict(config) | {
+        record = {
             "completed_timesteps": int(model.num_timesteps),
+            "finished": True,
             "interrupted": interrupted,
             "diverged": None if failure is None else str(failure),
         }
         if workers is not None:
             record |= {"ray_workers": workers, "worker_restarts": _restarts(venv)}
-        text = yaml.safe_dump(record, sort_keys=False)
-        replace_atomically(out / "config.yaml", lambda path: path.write_text(text))
+        _write_record(out, config, start, record)
         venv.close()
     if failure is not None:
         raise failure
@@ -397,18 +430,61 @@ def _run(
     return out / "model.zip"
 
 
+def _write_record(
+    out: Path, config: TrainConfig, start: Checkpoint | None, state: dict[str, Any]
+) -> None:
+    """``out/config.yaml``: ``config``, the checkpoint the run went on from, ``state``."""
+    from agents.training.guards import replace_atomically
+
+    record = asdict(config) | state
+    if start is not None:
+        record["resumed_from"] = str(start.model)
+    text = yaml.safe_dump(record, sort_keys=False)
+    replace_atomically(out / "config.yaml", lambda path: path.write_text(text))
+
+
+def _normalized(venv: VecEnv, params: dict[str, Any], start: Checkpoint | None) -> VecEnv:
+    """``venv`` under VecNormalize where the config normalises (``params``' ``normalize``,
+    taken out of them), with ``start``'s statistics where a run goes on."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    normalize = params.pop("normalize", False)
+    if not normalize:
+        return venv
+    if start is not None and start.stats is not None:
+        return VecNormalize.load(str(start.stats), venv)
+    norm_kwargs = normalize if isinstance(normalize, dict) else {}
+    return VecNormalize(venv, gamma=params.get("gamma", 0.99), **norm_kwargs)
+
+
+def _tensorboard(out: Path) -> str | None:
+    """``out/tb``, where TensorBoard is installed."""
+    try:
+        import tensorboard  # noqa: F401
+    except ImportError:
+        log.warning("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
+        return None
+    return str(out / "tb")
+
+
+def _load_model(config: TrainConfig, start: Checkpoint, venv: VecEnv, out: Path) -> BaseAlgorithm:
+    """``start``'s model on ``venv``, to go on learning. Its random generators are seeded
+    anew from the run's seed and the step, so that a resumed run is the same each time
+    it is resumed from that checkpoint (not the same as a run never stopped)."""
+    model = _algorithm_class(config.algo).load(
+        start.model, env=venv, device="cpu", tensorboard_log=_tensorboard(out)
+    )
+    model.set_random_seed(config.seed + start.steps)
+    return model
+
+
 def _make_model(
     config: TrainConfig, params: dict[str, Any], venv: VecEnv, out: Path
 ) -> BaseAlgorithm:
     """The algorithm on ``venv``, with the config's policy and TensorBoard in ``out/tb``."""
     policy = params.pop("policy", "MlpPolicy")
     policy_kwargs = params.pop("policy_kwargs", None)
-    tb: str | None = str(out / "tb")
-    try:
-        import tensorboard  # noqa: F401
-    except ImportError:
-        log.warning("tensorboard is not installed: no TensorBoard logs (pip install tensorboard)")
-        tb = None
+    tb = _tensorboard(out)
     if isinstance(params.get("train_freq"), list):  # [n, unit]: SB3 takes a tuple only
         params["train_freq"] = tuple(params["train_freq"])
     return _algorithm_class(config.algo)(

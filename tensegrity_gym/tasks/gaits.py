@@ -348,20 +348,60 @@ class FaceGait:
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         """The command for this control step. As a period begins, the support face
-        chooses its action; where the period before began on the same face, its move
-        stalled (the model's move did not happen from this state), and that entry is
-        not chosen again on the face this episode, until every one of its entries has."""
+        chooses its action (:meth:`begin`)."""
         command = next(self._period, None)
         if command is None:
-            positions = self._decode(observation).positions
-            face = lowest_face(positions)
-            if self._last is not None and self._last[0] == face:
-                self._stalled.add(self._last)
-            key, index = self._choose(face, positions)
-            self._last = (key, index) if key == face else None
-            steps = (self.hold_steps, self.settle_steps, self.ramp_steps)
-            action = self._choices[key][index].action
-            self._period = period_commands(self._commanded, action, self.hold_action, steps)
+            self.begin(observation)
             command = next(self._period)
         self._commanded = command
         return command.copy()
+
+    @property
+    def period_steps(self) -> int:
+        """Control steps of one period: the hold and the settle."""
+        return self.hold_steps + self.settle_steps
+
+    @property
+    def most_moves(self) -> int:
+        """The most entries any face of the table has."""
+        return max(len(c) for c in self._choices.values())
+
+    def begin(self, observation: NDArray[np.float32], index: int | None = None) -> None:
+        """Begin a period on the support face of ``observation``: with its entry
+        ``index`` (modulo the face's count), or (None) the one the gait chooses. Where
+        the period before began on the same face, its move stalled (the model's move did
+        not happen from this state), and the gait does not choose that entry again on
+        the face this episode, until every one of its entries has stalled."""
+        positions = self._decode(observation).positions
+        face = lowest_face(positions)
+        if self._last is not None and self._last[0] == face:
+            self._stalled.add(self._last)
+        key, chosen = self._choose(face, positions)
+        if index is not None:
+            chosen = int(index) % len(self._choices[key])
+        self._last = (key, chosen) if key == face else None
+        steps = (self.hold_steps, self.settle_steps, self.ramp_steps)
+        action = self._choices[key][chosen].action
+        self._period = period_commands(self._commanded, action, self.hold_action, steps)
+
+    def moves(self, observation: NDArray[np.float32]) -> tuple[NDArray[np.float64], ...]:
+        """What the support face of ``observation`` offers, entry by entry (m,) for the
+        face's m entries: each one's lookahead progress toward the goal (m,
+        :meth:`score`; 0 where its move is unknown), whether it stalled on the face this
+        episode, and which one the gait would choose (one-hot)."""
+        positions = self._decode(observation).positions
+        face = lowest_face(positions)
+        key = face
+        if key not in self._choices:
+            key = max(self._choices, key=lambda f: len(set(f) & set(face)))
+        yaw = face_yaw(positions, key)
+        choices = self._choices[key]
+        scores = np.array([self.score(c, yaw) for c in choices])
+        # The period before, begun on this face, stalled (begin records it).
+        pending = self._last if self._last is not None and self._last[0] == face else None
+        stalled = np.array([float((key, i) in self._stalled or (key, i) == pending)
+                            for i in range(len(choices))])  # fmt: skip
+        own = np.zeros(len(choices))
+        open_ = [i for i in range(len(choices)) if not stalled[i]] or list(range(len(choices)))
+        own[max(open_, key=lambda i: scores[i])] = 1.0
+        return scores, stalled, own

@@ -104,7 +104,7 @@ def test_a_robot_that_hardly_moves_is_one_line(stiffer: RecordedRun) -> None:
         identify_run(stiffer, ["damping"], model="mujoco")
 
 
-@pytest.mark.parametrize("engine", ["pybullet", "mujoco"])
+@pytest.mark.parametrize("engine", ["pybullet", pytest.param("mujoco", marks=pytest.mark.slow)])
 def test_identify_writes_a_robot_the_env_loads(tmp_path: Path, engine: str) -> None:
     """The command on a recorded bag (from either engine: identification simulates in
     PyBullet whatever recorded it): a robot YAML gym.make, the simulator and the UKF

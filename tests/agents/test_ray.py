@@ -180,6 +180,7 @@ def ray_run(cluster: str, tmp_path_factory: pytest.TempPathFactory) -> tuple[Pat
     return tmp / "run", killer
 
 
+@pytest.mark.slow  # a PPO run over two nodes (the fixture) is the module's heaviest part
 def test_training_over_two_nodes_survives_a_killed_worker(
     ray_run: tuple[Path, _KillOneWorker],
 ) -> None:
@@ -230,6 +231,7 @@ def test_an_unreachable_cluster_is_one_line_within_the_timeout(tmp_path: Path) -
 # ---------------------------------------------------------------------- evaluation
 
 
+@pytest.mark.slow  # the two-node PPO run, then 1,000-step UKF episodes here and there
 @pytest.mark.filterwarnings("ignore:No artists with labels")  # the report's error plot: no UKF
 def test_evaluation_on_ray_gives_the_numbers_it_gives_here(
     ray_run: tuple[Path, _KillOneWorker], tmp_path: Path

@@ -115,6 +115,7 @@ def test_carried_robot_with_a_height_hint_alone(
     assert np.max(floor_frame_errors(r.anchors, carried.anchors)) <= 0.15
 
 
+@pytest.mark.slow  # a second solve of the recording; the verdict's words are checked below
 def test_carried_robot_without_imu_or_hint_says_what_to_give(
     superball: RobotDescription, carried: CarriedRecording
 ) -> None:
@@ -252,6 +253,18 @@ def test_a_counterclockwise_hint_settles_an_undecided_handedness(
     disagreed = _handed(with_imu, parse_floor_hint("ccw=0,2,1"))
     assert disagreed.mirror == with_imu.mirror
     assert "turn the other way" in judge(disagreed, CalibrationConfig())[0]
+
+
+def test_a_result_without_a_floor_says_what_to_give(with_imu: CalibrationResult) -> None:
+    """The verdict of a carried robot's result with no floor source (neither IMU nor
+    hint): the floor cannot be told, and which hint tells it."""
+    from estimation.uwb_calibration.config import CalibrationConfig
+    from estimation.uwb_calibration.verdict import judge
+
+    none = replace(with_imu, floor="none", frame="anchors")
+    verdict = judge(none, CalibrationConfig())[0]
+    assert verdict.startswith("doubtful: ")
+    assert "the floor cannot be told from ranges alone" in verdict and "floor hint" in verdict
 
 
 @pytest.mark.parametrize(

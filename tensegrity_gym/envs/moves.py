@@ -1,0 +1,129 @@
+"""Actions that choose among a steering gait's moves: one action, one gait period.
+
+A steering gait (:class:`~tensegrity_gym.tasks.gaits.FaceGait` with ``gait="steer"``)
+lists for each support face several contractions, each with the move it makes, and
+chooses by a lookahead over those modelled moves. :class:`MoveChoice` hands that choice
+to a policy: its action is the index of the face's entry to make (modulo the face's
+count), and one step runs the whole period (the hold and the settle, 35 control steps
+on the 3-bar) through the env beneath, the rewards summed. The policy sees the env's
+observation (estimated states, the goal) and, for each entry of the support face, the
+gait's lookahead progress toward the goal (m), whether the entry exists on this face,
+whether it stalled here this episode, and which the gait itself would take
+(:func:`move_features`). A policy that learns which modelled moves do not happen, or
+pay less than the model says, from the estimated state can do better than the gait's
+own greedy choice; one that takes the gait's choice is the gait.
+
+Wrap an env made with absolute actions: ``MoveChoice(gym.make(ID))``. gym.make's time
+limit, beneath the wrapper, still counts control steps: the episode lasts as long in
+seconds as the id's.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, SupportsFloat, cast
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from numpy.typing import NDArray
+
+from tensegrity_gym.tasks.gaits import FaceGait
+
+if TYPE_CHECKING:
+    from tensegrity_gym.envs.tensegrity_env import TensegrityEnv
+
+__all__ = ["MOVE_FEATURES", "MoveChoice", "move_features"]
+
+MOVE_FEATURES = 4
+"""Entries per move in the observation: the lookahead progress (m), present, stalled,
+the gait's own choice."""
+
+_MOST_PROGRESS = 10.0
+"""m: the lookahead progress is clipped to this (a few metres over six periods)."""
+
+
+def move_features(
+    gait: FaceGait, observation: NDArray[np.float32], most: int
+) -> NDArray[np.float32]:
+    """The move part of :class:`MoveChoice`'s observation, (4 * ``most``,): for each of
+    the support face's entries, padded to ``most``: the lookahead progress (m), 1 where
+    the entry exists, 1 where it stalled, 1 for the gait's own choice."""
+    scores, stalled, own = gait.moves(observation)
+    k = min(len(scores), most)
+    out = np.zeros((MOVE_FEATURES, most), dtype=np.float32)
+    out[0, :k] = np.clip(scores[:k], -_MOST_PROGRESS, _MOST_PROGRESS)
+    out[1, :k] = 1.0
+    out[2, :k] = stalled[:k]
+    out[3, :k] = own[:k]
+    return out.ravel()
+
+
+class MoveChoice(
+    gym.Wrapper[NDArray[np.float32], np.int64, NDArray[np.float32], NDArray[np.float32]],
+    gym.utils.RecordConstructorArgs,
+):
+    """A policy's action picks the support face's steering-gait entry; a step is a
+    whole gait period.
+
+    Args:
+        env: a simulated or robot env of this package with absolute actions.
+        gait: the robot's steering gait's name (a gait with several entries a face).
+    """
+
+    def __init__(self, env: gym.Env[Any, Any], gait: str = "steer") -> None:
+        gym.utils.RecordConstructorArgs.__init__(self, gait=gait)  # gym.make can remake it
+        gym.Wrapper.__init__(self, env)
+        inner: TensegrityEnv = env.unwrapped  # type: ignore[assignment]
+        if getattr(inner, "action_base", None) is not None:
+            raise ValueError("MoveChoice: the env has residual actions; make it without "
+                             "residual_gait (the moves are the gait's own)")  # fmt: skip
+        self.gait = FaceGait(inner.backend.description, inner.task, gait=gait)
+        if not self.gait.steers:
+            raise ValueError(
+                f"MoveChoice: the gait {gait!r} of {inner.backend.description.name} has one "
+                "entry a face: there is nothing to choose (give a steering gait)"
+            )
+        self.most = self.gait.most_moves
+        self.action_space = spaces.Discrete(self.most)
+        base = env.observation_space
+        assert isinstance(base, spaces.Box)
+        low = np.concatenate([base.low, np.repeat([-_MOST_PROGRESS, 0, 0, 0], self.most)])
+        high = np.concatenate([base.high, np.repeat([_MOST_PROGRESS, 1, 1, 1], self.most)])
+        self.observation_space = spaces.Box(low.astype(np.float32), high.astype(np.float32))
+        self._last: NDArray[np.float32] | None = None
+
+    def _observed(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
+        self._last = observation
+        moves = move_features(self.gait, observation, self.most)
+        return np.concatenate([observation, moves]).astype(np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[NDArray[np.float32], dict[str, Any]]:
+        observation, info = self.env.reset(seed=seed, options=options)
+        self.gait.reset()
+        return self._observed(observation), info
+
+    def step(
+        self, action: np.int64
+    ) -> tuple[NDArray[np.float32], SupportsFloat, bool, bool, dict[str, Any]]:
+        """Run one gait period with entry ``action`` of the support face: the last
+        observation, the period's summed reward, and the last step's flags and info
+        (``info["period_steps"]``: the control steps run, fewer where the episode
+        ended within the period)."""
+        if self._last is None:
+            raise RuntimeError("MoveChoice: call reset() before step()")
+        observation = self._last
+        self.gait.begin(observation, int(action))
+        total, steps = 0.0, 0
+        terminated = truncated = False
+        info: dict[str, Any] = {}
+        beneath = cast("gym.Env[NDArray[np.float32], NDArray[np.float32]]", self.env)
+        for _ in range(self.gait.period_steps):
+            observation, reward, terminated, truncated, info = beneath.step(self.gait(observation))
+            total += float(reward)
+            steps += 1
+            if terminated or truncated:
+                break
+        info["period_steps"] = steps
+        return self._observed(observation), total, terminated, truncated, info

@@ -1,0 +1,74 @@
+"""MoveChoice: a policy picks the steering gait's entries, a gait period a step."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import tensegrity_gym  # noqa: F401  (registers the ids)
+from tensegrity_gym.envs.moves import MOVE_FEATURES, MoveChoice
+from tensegrity_gym.tasks.gaits import FaceGait
+
+GOTO = "tensegrity_gym/ThreeBarGoTo-v0"
+
+
+def _own_choice(observation: np.ndarray, most: int) -> int:
+    """The entry the gait itself would take, read from the observation."""
+    return int(np.argmax(observation[-most:]))
+
+
+def test_taking_the_gaits_own_choice_is_the_gait() -> None:
+    """Choosing what the observation says the gait would choose gives the steering
+    gait's episode step for step: same true path, same summed reward."""
+    moved = MoveChoice(gym.make(GOTO, estimator="oracle", max_episode_steps=140))
+    obs, _ = moved.reset(seed=3)
+    assert moved.action_space.n == moved.most >= 2
+    assert obs.shape == moved.observation_space.shape
+    rewards, periods = 0.0, 0
+    done = False
+    while not done:
+        obs, reward, terminated, truncated, info = moved.step(_own_choice(obs, moved.most))
+        rewards += float(reward)
+        periods += 1
+        done = terminated or truncated
+    moved_com = info["com_true"]
+    assert periods == 4 and info["period_steps"] == 140 - 3 * moved.gait.period_steps
+
+    env = gym.make(GOTO, estimator="oracle", max_episode_steps=140)
+    inner = env.unwrapped
+    gait = FaceGait(inner.backend.description, inner.task, gait="steer")
+    obs, _ = env.reset(seed=3)
+    total, done = 0.0, False
+    while not done:
+        obs, reward, terminated, truncated, info = env.step(gait(obs))
+        total += float(reward)
+        done = terminated or truncated
+    np.testing.assert_array_equal(info["com_true"], moved_com)
+    assert total == pytest.approx(rewards, abs=1e-9)
+
+
+def test_move_features_describe_the_support_faces_entries() -> None:
+    moved = MoveChoice(gym.make(GOTO, estimator="oracle"))
+    obs, _ = moved.reset(seed=0)
+    k = moved.most
+    features = obs[-MOVE_FEATURES * k :].reshape(MOVE_FEATURES, k)
+    present = features[1]
+    assert present[0] == 1.0 and set(np.unique(present)) <= {0.0, 1.0}
+    assert features[3].sum() == 1.0 and present[int(np.argmax(features[3]))] == 1.0
+    assert np.all(features[0][present == 0] == 0.0) and np.all(features[2] == 0.0)
+    # The gait's own choice is the entry with the most lookahead progress.
+    assert int(np.argmax(features[3])) == int(
+        np.argmax(np.where(present > 0, features[0], -np.inf))
+    )
+
+
+def test_check_env_and_bad_wrapping() -> None:
+    check_env(
+        MoveChoice(gym.make(GOTO, estimator="oracle", max_episode_steps=70)), skip_render_check=True
+    )
+    with pytest.raises(ValueError, match="residual actions"):
+        MoveChoice(gym.make(GOTO, estimator="oracle", residual_gait=0.5, base_gait="steer"))
+    with pytest.raises(ValueError, match="one entry a face"):
+        MoveChoice(gym.make(GOTO, estimator="oracle"), gait="forward")
