@@ -3,15 +3,17 @@
 A steering gait (:class:`~tensegrity_gym.tasks.gaits.FaceGait` with ``gait="steer"``)
 lists for each support face several contractions, each with the move it makes, and
 chooses by a lookahead over those modelled moves. :class:`MoveChoice` hands that choice
-to a policy: its action is the index of the face's entry to make (modulo the face's
-count), and one step runs the whole period (the hold and the settle, 35 control steps
-on the 3-bar) through the env beneath, the rewards summed. The policy sees the env's
-observation (estimated states, the goal) and, for each entry of the support face, the
-gait's lookahead progress toward the goal (m), whether the entry exists on this face,
-whether it stalled here this episode, and which the gait itself would take
-(:func:`move_features`). A policy that learns which modelled moves do not happen, or
-pay less than the model says, from the estimated state can do better than the gait's
-own greedy choice; one that takes the gait's choice is the gait.
+to a policy: its action is the rank of the face's entry to make in the gait's order of
+preference (0: the gait's own choice, then the others by their lookahead progress, the
+ones that stalled last; modulo the face's count), and one step runs the whole period
+(the hold and the settle, 35 control steps on the 3-bar) through the env beneath, the
+rewards summed. The policy sees the env's observation (estimated states, the goal) and,
+for each entry of the support face in that order, the gait's lookahead progress toward
+the goal (m), whether the entry exists, whether it stalled here this episode, and
+whether it is the gait's own choice (:func:`move_features`). A policy that always takes
+rank 0 is the gait; one that learns which modelled moves do not happen, or pay less
+than the model says, from the estimated state can do better. The ranks make the gait a
+policy's natural start: a bias on rank 0's logit.
 
 Wrap an env made with absolute actions: ``MoveChoice(gym.make(ID))``. gym.make's time
 limit, beneath the wrapper, still counts control steps: the episode lasts as long in
@@ -32,7 +34,7 @@ from tensegrity_gym.tasks.gaits import FaceGait
 if TYPE_CHECKING:
     from tensegrity_gym.envs.tensegrity_env import TensegrityEnv
 
-__all__ = ["MOVE_FEATURES", "MoveChoice", "move_features"]
+__all__ = ["MOVE_FEATURES", "MoveChoice", "move_features", "ranked_moves"]
 
 MOVE_FEATURES = 4
 """Entries per move in the observation: the lookahead progress (m), present, stalled,
@@ -42,19 +44,29 @@ _MOST_PROGRESS = 10.0
 """m: the lookahead progress is clipped to this (a few metres over six periods)."""
 
 
+def ranked_moves(gait: FaceGait, observation: NDArray[np.float32]) -> NDArray[np.intp]:
+    """The support face's entries in the gait's order of preference: its own choice
+    first, then the others that have not stalled by their lookahead progress, the
+    stalled ones last, (m,) entry indices."""
+    scores, stalled, own = gait.moves(observation)
+    return np.lexsort((-scores, stalled, -own)).astype(np.intp)
+
+
 def move_features(
     gait: FaceGait, observation: NDArray[np.float32], most: int
 ) -> NDArray[np.float32]:
     """The move part of :class:`MoveChoice`'s observation, (4 * ``most``,): for each of
-    the support face's entries, padded to ``most``: the lookahead progress (m), 1 where
-    the entry exists, 1 where it stalled, 1 for the gait's own choice."""
+    the support face's entries in the gait's order (:func:`ranked_moves`), padded to
+    ``most``: the lookahead progress (m), 1 where the entry exists, 1 where it stalled,
+    1 for the gait's own choice (the first)."""
     scores, stalled, own = gait.moves(observation)
-    k = min(len(scores), most)
+    order = ranked_moves(gait, observation)[:most]
+    k = len(order)
     out = np.zeros((MOVE_FEATURES, most), dtype=np.float32)
-    out[0, :k] = np.clip(scores[:k], -_MOST_PROGRESS, _MOST_PROGRESS)
+    out[0, :k] = np.clip(scores[order], -_MOST_PROGRESS, _MOST_PROGRESS)
     out[1, :k] = 1.0
-    out[2, :k] = stalled[:k]
-    out[3, :k] = own[:k]
+    out[2, :k] = stalled[order]
+    out[3, :k] = own[order]
     return out.ravel()
 
 
@@ -114,7 +126,8 @@ class MoveChoice(
         if self._last is None:
             raise RuntimeError("MoveChoice: call reset() before step()")
         observation = self._last
-        self.gait.begin(observation, int(action))
+        order = ranked_moves(self.gait, observation)
+        self.gait.begin(observation, int(order[int(action) % len(order)]))
         total, steps = 0.0, 0
         terminated = truncated = False
         info: dict[str, Any] = {}
