@@ -68,6 +68,7 @@ def test_stationary_actuation_moves_two_cables_and_not_the_robot() -> None:
     assert np.linalg.norm(end.com[:2] - start.com[:2]) < 0.2  # metres: it stays put
 
 
+@pytest.mark.slow  # four envs made, each calibrated and started: over a minute here
 def test_the_speed_ratio_alternates_and_takes_the_least_of_each() -> None:
     from agents.benchmarks.env import bench_env_speed_ratio
 

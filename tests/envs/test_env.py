@@ -34,7 +34,7 @@ def test_gymnasium_check_env(env_id: str, make_env) -> None:
     env.close()
 
 
-_SB3_DEFAULT = ("tensegrity_gym/ThreeBarRoll-v0", "tensegrity_gym_hardware/SuperBallGoTo-v0")
+_SB3_DEFAULT = ("tensegrity_gym/ThreeBarRoll-v0", "tensegrity_gym_hardware/ThreeBarRoll-v0")
 """The ids SB3's checker runs on by default (one a namespace); Gymnasium's runs on all."""
 
 
