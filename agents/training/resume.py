@@ -15,6 +15,7 @@ the same as a run never stopped.
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
 import yaml
@@ -92,10 +93,9 @@ def resume(
     """Go on with the run in ``out`` from its newest checkpoint, to ``timesteps`` steps in
     all (default: the run's own total); the path of the saved model."""
     record = read_record(out)
-    fields = {name: record[name] for name in TrainConfig.__dataclass_fields__}
-    config = TrainConfig(**fields)
+    config = TrainConfig(**{name: record[name] for name in TrainConfig.__dataclass_fields__})
     if timesteps is not None:
-        config = TrainConfig(**(fields | {"timesteps": int(timesteps)}))
+        config = replace(config, timesteps=int(timesteps))
     start = last_checkpoint(out, record)
     if start.steps >= config.timesteps:
         raise ValueError(

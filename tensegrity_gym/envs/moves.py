@@ -44,30 +44,32 @@ _MOST_PROGRESS = 10.0
 """m: the lookahead progress is clipped to this (a few metres over six periods)."""
 
 
-def ranked_moves(gait: FaceGait, observation: NDArray[np.float32]) -> NDArray[np.intp]:
-    """The support face's entries in the gait's order of preference: its own choice
-    first, then the others that have not stalled by their lookahead progress, the
-    stalled ones last, (m,) entry indices."""
-    scores, stalled, own = gait.moves(observation)
+def ranked_moves(
+    scores: NDArray[np.float64], stalled: NDArray[np.float64], own: NDArray[np.float64]
+) -> NDArray[np.intp]:
+    """A face's entries (as :meth:`FaceGait.moves` gives them, each (m,)) in the gait's
+    order of preference: its own choice first, then the others that have not stalled by
+    their lookahead progress, the stalled ones last, (m,) entry indices."""
     return np.lexsort((-scores, stalled, -own)).astype(np.intp)
 
 
 def move_features(
     gait: FaceGait, observation: NDArray[np.float32], most: int
-) -> NDArray[np.float32]:
-    """The move part of :class:`MoveChoice`'s observation, (4 * ``most``,): for each of
-    the support face's entries in the gait's order (:func:`ranked_moves`), padded to
-    ``most``: the lookahead progress (m), 1 where the entry exists, 1 where it stalled,
-    1 for the gait's own choice (the first)."""
+) -> tuple[NDArray[np.float32], NDArray[np.intp]]:
+    """The move part of :class:`MoveChoice`'s observation, (4 * ``most``,), and the
+    support face's entries in the gait's order (:func:`ranked_moves`), (m,). For each
+    entry in that order, padded to ``most``: the lookahead progress (m), 1 where the
+    entry exists, 1 where it stalled, 1 for the gait's own choice (the first)."""
     scores, stalled, own = gait.moves(observation)
-    order = ranked_moves(gait, observation)[:most]
-    k = len(order)
+    order = ranked_moves(scores, stalled, own)
+    shown = order[:most]
+    k = len(shown)
     out = np.zeros((MOVE_FEATURES, most), dtype=np.float32)
-    out[0, :k] = np.clip(scores[order], -_MOST_PROGRESS, _MOST_PROGRESS)
+    out[0, :k] = np.clip(scores[shown], -_MOST_PROGRESS, _MOST_PROGRESS)
     out[1, :k] = 1.0
-    out[2, :k] = stalled[order]
-    out[3, :k] = own[order]
-    return out.ravel()
+    out[2, :k] = stalled[shown]
+    out[3, :k] = own[shown]
+    return out.ravel(), order
 
 
 class MoveChoice(
@@ -103,10 +105,12 @@ class MoveChoice(
         high = np.concatenate([base.high, np.repeat([_MOST_PROGRESS, 1, 1, 1], self.most)])
         self.observation_space = spaces.Box(low.astype(np.float32), high.astype(np.float32))
         self._last: NDArray[np.float32] | None = None
+        self._order: NDArray[np.intp] = np.zeros(0, dtype=np.intp)
+        """The last observation's face entries in the gait's order."""
 
     def _observed(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         self._last = observation
-        moves = move_features(self.gait, observation, self.most)
+        moves, self._order = move_features(self.gait, observation, self.most)
         return np.concatenate([observation, moves]).astype(np.float32)
 
     def reset(
@@ -125,8 +129,7 @@ class MoveChoice(
         ended within the period)."""
         if self._last is None:
             raise RuntimeError("MoveChoice: call reset() before step()")
-        observation = self._last
-        order = ranked_moves(self.gait, observation)
+        observation, order = self._last, self._order
         self.gait.begin(observation, int(order[int(action) % len(order)]))
         total, steps = 0.0, 0
         terminated = truncated = False

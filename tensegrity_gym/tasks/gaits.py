@@ -297,14 +297,18 @@ class FaceGait:
         key, index = self._choose(face, positions)
         return self._choices[key][index].action
 
+    def _listed(self, face: tuple[int, ...]) -> tuple[int, ...]:
+        """``face`` where the table lists it, else the listed face most like it."""
+        if face in self._choices:
+            return face
+        return max(self._choices, key=lambda f: len(set(f) & set(face)))
+
     def _choose(
         self, face: tuple[int, ...], positions: NDArray[np.floating] | None
     ) -> tuple[tuple[int, ...], int]:
         """The face whose entries apply (``face``, else the most similar listed) and the
         index of the entry chosen among them."""
-        key = face
-        if key not in self._choices:
-            key = max(self._choices, key=lambda f: len(set(f) & set(face)))
+        key = self._listed(face)
         choices = self._choices[key]
         if positions is None or len(choices) == 1:
             return key, 0
@@ -391,9 +395,7 @@ class FaceGait:
         episode, and which one the gait would choose (one-hot)."""
         positions = self._decode(observation).positions
         face = lowest_face(positions)
-        key = face
-        if key not in self._choices:
-            key = max(self._choices, key=lambda f: len(set(f) & set(face)))
+        key = self._listed(face)
         yaw = face_yaw(positions, key)
         choices = self._choices[key]
         scores = np.array([self.score(c, yaw) for c in choices])
