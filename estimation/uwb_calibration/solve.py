@@ -208,7 +208,7 @@ def solve_table(run: Run) -> Solved:
         grown = _grow(run, _window_start(table, run.description, int(w), config))
         candidates = [grown]
         if _below_floor(grown):
-            candidates.append(_reflected(grown))
+            candidates += [_reflected(grown, _under_floor(grown)), _reflected(grown)]
         for candidate in candidates:
             _, state, cost = _stage(run, common, free, candidate, config.loss)
             logger.debug("start %d (window %d): cost %.4f", k, w, cost)
@@ -224,19 +224,27 @@ def solve_table(run: Run) -> Solved:
 _FLOOR_TOLERANCE = 0.05  # m: an anchor this far below the floor is on the wrong side
 
 
+def _under_floor(state: JointState) -> NDArray[np.bool_]:
+    """(A,) the anchors of ``state`` that lie under the floor the robot rests on."""
+    return np.asarray(state.anchors[:, 2] < -_FLOOR_TOLERANCE)
+
+
 def _below_floor(state: JointState) -> bool:
     """Whether an anchor of ``state`` lies under the floor the robot rests on."""
-    return bool(np.min(state.anchors[:, 2]) < -_FLOOR_TOLERANCE)
+    return bool(_under_floor(state).any())
 
 
-def _reflected(state: JointState) -> JointState:
-    """``state`` with its anchors mirrored through the horizontal plane at the robot's
-    mean height. The robot moves in a slab a few tenths of a metre thick, so ranges
-    alone barely tell an anchor from its mirror image through that slab; a solve can
-    settle on the mirror, with the higher anchors under the floor."""
+def _reflected(state: JointState, which: NDArray[np.bool_] | None = None) -> JointState:
+    """``state`` with its anchors (those of ``which`` (A,), else all) mirrored through
+    the horizontal plane at the robot's mean height. The robot moves in a slab a few
+    tenths of a metre thick, so ranges alone barely tell an anchor from its mirror
+    image through that slab; a solve can settle on the mirror of the whole
+    constellation, or of some anchors only (each is placed by its own ranges), with
+    those under the floor."""
     h = float(np.mean(state.positions[:, 2])) if len(state.positions) else 0.0
     anchors = state.anchors.copy()
-    anchors[:, 2] = 2.0 * h - anchors[:, 2]
+    rows = slice(None) if which is None else which
+    anchors[rows, 2] = 2.0 * h - anchors[rows, 2]
     return replace(state, anchors=anchors, positions=np.zeros((0, 3)))
 
 
