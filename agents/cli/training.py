@@ -145,6 +145,12 @@ def add_train(tr: argparse.ArgumentParser) -> None:
         "(gym.make(residual_gait=)); default: actions are the rest-length targets",
     )  # fmt: skip
     tr.add_argument(
+        "--moves", default=None, metavar="GAIT",
+        help="the policy picks among the support face's moves of the robot's steering "
+        "gait GAIT (e.g. steer), a step a gait period (PPO; --timesteps then counts those "
+        "choices); default: actions are the rest-length targets",
+    )  # fmt: skip
+    tr.add_argument(
         "--env-kwargs", type=env_kwarg, nargs="+", action="extend", default=None,
         metavar="KEY:VALUE",
         help="more gym.make arguments for training, as rl-zoo3 takes them (e.g. the "
@@ -198,7 +204,7 @@ def training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 
 _SETTINGS = ("config", "hyperparams", "env_kwargs", "residual_gait", "randomization",
-             "n_envs", "engine", "preset")  # fmt: skip
+             "n_envs", "engine", "preset", "moves")  # fmt: skip
 """``train``'s options that a resumed run takes from its own config instead."""
 
 
@@ -252,6 +258,7 @@ def _train_or_resume(args: argparse.Namespace) -> Path:
         env_kwargs=training_env_kwargs(args),
         ray_address=args.ray,
         workers=args.workers,
+        moves=args.moves,
     )
 
 

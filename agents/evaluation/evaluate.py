@@ -20,6 +20,7 @@ import numpy as np
 import yaml
 
 import tensegrity_gym  # noqa: F401  (registers the ids)
+from tensegrity_gym.envs.moves import MoveChoice, MovePolicy
 from tensegrity_gym.model.description import (
     DEFAULT_GAIT,
     STEER_GAIT,
@@ -305,14 +306,6 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
         raise ValueError(f"{model_file}: cannot load a {algo} model: {err}") from None
     env_kwargs = config.get("env_kwargs") or {}
     actions = action_kwargs(config)
-    env = gym.make(env_id, estimator="oracle", **actions)
-    space = env.observation_space
-    env.close()
-    if model.observation_space.shape != space.shape:
-        raise ValueError(
-            f"{model_file}: the model observes {model.observation_space.shape}, "
-            f"but {env_id} gives {space.shape}: a model of another env"
-        )
     normalise: Callable[[Any], Any] = lambda obs: obs  # noqa: E731
     stats_file = run_dir / "vecnormalize.pkl"
     if stats_file.exists():
@@ -321,16 +314,50 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
         stats.training = False
         normalise = stats.normalize_obs
 
-    def act(obs: NDArray[np.float32]) -> NDArray[np.float32]:
-        action, _ = model.predict(normalise(obs), deterministic=True)
-        return np.asarray(action, dtype=np.float32)
+    def predict(obs: NDArray[np.float32]) -> Any:
+        return model.predict(normalise(obs), deterministic=True)[0]
 
+    act, new_episode, shape = _acting(env_id, actions, config.get("moves"), predict)
+    if model.observation_space.shape != shape:
+        raise ValueError(
+            f"{model_file}: the model observes {model.observation_space.shape}, "
+            f"but {env_id} gives {shape}: a model of another env"
+        )
     files = [f for f in (model_file, config_file, stats_file) if f.exists()]
     saved = {f.name: f.read_bytes() for f in files}
     # The report says which worlds a policy trained in (gym.make's randomization).
     worlds = env_kwargs.get("randomization")
     default = f"trained on {trained_on}" + (f" in {worlds} worlds" if worlds else "")
-    return LoadedPolicy(name or default, env_id, trained_on, act, env_kwargs=actions, saved=saved)
+    return LoadedPolicy(name or default, env_id, trained_on, act, new_episode,
+                        env_kwargs=actions, saved=saved)  # fmt: skip
+
+
+def _acting(
+    env_id: str,
+    actions: dict[str, Any],
+    moves: str | None,
+    predict: Callable[[NDArray[np.float32]], Any],
+) -> tuple[Callable[[NDArray[np.float32]], NDArray[np.float32]], Callable[[int], None],
+           tuple[int, ...] | None]:  # fmt: skip
+    """A trained model's ``predict`` as the env's policy: the act, what it does before
+    an episode, and the observation shape the model must have. With ``moves`` (a run of
+    ``train --moves``), the model picks among the steering gait's moves as each period
+    begins (:class:`~tensegrity_gym.envs.moves.MovePolicy`) and the gait commands the
+    steps."""
+    env = gym.make(env_id, estimator="oracle", **actions)
+    try:
+        if moves is None:
+            shape = env.observation_space.shape
+
+            def act(obs: NDArray[np.float32]) -> NDArray[np.float32]:
+                return np.asarray(predict(obs), dtype=np.float32)
+
+            return act, _no_reset, shape
+        chosen = MoveChoice(env, gait=moves)
+        policy = MovePolicy(chosen.gait, lambda seen: int(predict(seen)))
+        return policy, policy.reset, chosen.observation_space.shape
+    finally:
+        env.close()
 
 
 class _RandomActions:

@@ -15,7 +15,7 @@ the same as a run never stopped.
 from __future__ import annotations
 
 import re
-from dataclasses import replace
+from dataclasses import MISSING, fields, replace
 from typing import TYPE_CHECKING, Any
 
 import yaml
@@ -30,6 +30,10 @@ if TYPE_CHECKING:
 
 __all__ = ["last_checkpoint", "read_record", "resume"]
 
+_REQUIRED = [f.name for f in fields(TrainConfig) if f.default is MISSING
+             and f.default_factory is MISSING]  # fmt: skip
+"""The fields every run's ``config.yaml`` has."""
+
 _CHECKPOINT = re.compile(r"model_(\d+)_steps\.zip")
 
 
@@ -43,7 +47,7 @@ def read_record(out: Path) -> dict[str, Any]:
         raise ValueError(f"{out}: no training run here (no config.yaml)") from None
     except yaml.YAMLError as err:
         raise ValueError(f"{path}: not YAML ({' '.join(str(err).split())})") from None
-    missing = [f for f in TrainConfig.__dataclass_fields__ if f not in (record or {})]
+    missing = [f for f in _REQUIRED if f not in (record or {})]
     if not isinstance(record, dict) or missing:
         raise ValueError(f"{path}: not a training run's config (missing {missing})")
     return record
@@ -93,7 +97,8 @@ def resume(
     """Go on with the run in ``out`` from its newest checkpoint, to ``timesteps`` steps in
     all (default: the run's own total); the path of the saved model."""
     record = read_record(out)
-    config = TrainConfig(**{name: record[name] for name in TrainConfig.__dataclass_fields__})
+    # A run of an earlier version lacks the fields added since, which have defaults.
+    config = TrainConfig(**{k: record[k] for k in TrainConfig.__dataclass_fields__ if k in record})
     if timesteps is not None:
         config = replace(config, timesteps=int(timesteps))
     start = last_checkpoint(out, record)

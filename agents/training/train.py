@@ -14,7 +14,7 @@ import ast
 import inspect
 import logging
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -174,6 +174,9 @@ class TrainConfig:
     n_envs: int
     hyperparams: dict[str, Any] = field(default_factory=dict)
     env_kwargs: dict[str, Any] = field(default_factory=dict)
+    moves: str | None = None
+    """A steering gait's name: the policy picks among its moves, a step a gait period
+    (:class:`~tensegrity_gym.envs.moves.MoveChoice`); None: the env's own actions."""
 
 
 def qualified_id(env_id: str) -> str:
@@ -207,15 +210,22 @@ def make_training_env(
     env_kwargs: dict[str, Any],
     monitor_dir: Path | None,
     workers: int | None = None,
+    moves: str | None = None,
 ) -> VecEnv:
     """``n_envs`` Monitor-wrapped envs, in subprocesses where there is more than one core;
     with ``workers``, on that many Ray actors of the connected cluster
-    (:class:`agents.training.cluster.vec_env.RayVecEnv`), the Monitor log kept here."""
+    (:class:`agents.training.cluster.vec_env.RayVecEnv`), the Monitor log kept here;
+    with ``moves``, each under :class:`~tensegrity_gym.envs.moves.MoveChoice` of that
+    gait (not on Ray)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
+    from tensegrity_gym.envs.moves import MoveChoice
+
     qualified = qualified_id(env_id)
     if workers is not None:
+        if moves is not None:
+            raise ValueError("train: --moves runs on this machine's envs, not on Ray workers")
         from agents.training.cluster.vec_env import RayVecEnv
 
         venv = RayVecEnv(qualified, n_envs, seed, env_kwargs, workers=workers)
@@ -237,6 +247,8 @@ def make_training_env(
         env_kwargs=env_kwargs,
         monitor_dir=str(monitor_dir) if monitor_dir is not None else None,
         vec_env_cls=SubprocVecEnv if use_processes else DummyVecEnv,
+        wrapper_class=None if moves is None else MoveChoice,
+        wrapper_kwargs=None if moves is None else {"gait": moves},
     )
 
 
@@ -257,6 +269,7 @@ def train(
     callbacks: Sequence[BaseCallback] = (),
     ray_address: str | None = None,
     workers: int | None = None,
+    moves: str | None = None,
 ) -> Path:
     """Train, and return the path of the saved model (``out/model.zip``).
 
@@ -277,12 +290,23 @@ def train(
     ``ray_address`` (``HOST:PORT``, ``auto`` or ``local``) steps the ``n_envs`` envs on
     ``workers`` Ray actors of that cluster (default: one per CPU of the cluster, at most
     ``n_envs``); the learner and the run folder stay in this process.
+
+    ``moves`` (a steering gait's name, PPO only): the policy picks among the gait's
+    moves of the support face, a step a gait period
+    (:class:`~tensegrity_gym.envs.moves.MoveChoice`): ``timesteps`` and the
+    hyperparameters' step counts then count those choices.
     """
     if workers is not None and ray_address is None:
         raise ValueError("workers are Ray actors: give the cluster's address (--ray)")
     config = _checked_config(
         env_id, algo, estimator, timesteps, seed, n_envs, config_file, hyperparams, env_kwargs
     )
+    if moves is not None:
+        config = replace(config, moves=check_moves(config, moves))
+        if config.hyperparams.get("use_sde"):  # the shipped configs' continuous exploration
+            log.info("--moves: gSDE explores continuous actions only; off for this run")
+            params = {k: v for k, v in config.hyperparams.items() if k != "sde_sample_freq"}
+            config = replace(config, hyperparams=params | {"use_sde": False})
     if workers is not None and workers < 1:
         raise ValueError(f"workers ({workers}) must be positive")
     return run_training(config, out, RunOptions(checkpoint_every, progress_bar, callbacks),
@@ -366,6 +390,30 @@ def _checked_config(
     return TrainConfig(env_id, algo, estimator, total, seed, envs, dict(params), kwargs)
 
 
+def check_moves(config: TrainConfig, moves: str) -> str:
+    """``moves`` where ``config`` can train on it (PPO, absolute actions, a gait of the
+    id's robot with several moves a face); ValueError in one line where not."""
+    import gymnasium as gym
+
+    from tensegrity_gym.envs.moves import MoveChoice
+
+    if config.algo != "ppo":
+        raise ValueError(
+            f"train: --moves makes the action a choice among moves, which {config.algo} "
+            "cannot take (a discrete action): use --algo ppo"
+        )
+    if config.env_kwargs.get("residual_gait") is not None:
+        raise ValueError("train: --moves picks the gait's own moves; leave out --residual-gait")
+    env = gym.make(config.env_id, estimator="oracle")
+    try:
+        MoveChoice(env, gait=moves)
+    except (ValueError, KeyError) as err:
+        raise ValueError(f"train: --moves {moves}: {err}") from None
+    finally:
+        env.close()
+    return moves
+
+
 def _defaults(algo: str) -> dict[str, Any]:
     """The algorithm's own values of the hyperparameters a config leaves out."""
     parameters = inspect.signature(_algorithm_class(algo).__init__).parameters.values()
@@ -381,9 +429,8 @@ def _run(config: TrainConfig, out: Path, options: RunOptions, workers: int | Non
     params = dict(config.hyperparams)
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)  # small networks: threads only contend with the env workers
-    venv = make_training_env(
-        config.env_id, config.n_envs, config.seed, config.env_kwargs, out / "monitor", workers
-    )
+    venv = make_training_env(config.env_id, config.n_envs, config.seed, config.env_kwargs,
+                             out / "monitor", workers, config.moves)  # fmt: skip
     venv = _normalized(venv, params, options.start)
     start = options.start
     model = _make_model(config, params, venv, out) if start is None else _load_model(

@@ -17,7 +17,9 @@ policy's natural start: a bias on rank 0's logit.
 
 Wrap an env made with absolute actions: ``MoveChoice(gym.make(ID))``. gym.make's time
 limit, beneath the wrapper, still counts control steps: the episode lasts as long in
-seconds as the id's.
+seconds as the id's. ``tensegrity-gym train --moves steer`` trains on it. A policy so
+trained drives the env beneath, step by step, through :class:`MovePolicy` (what
+``evaluate`` runs): the same choices at the same observations, the same episode.
 """
 
 from __future__ import annotations
@@ -32,9 +34,18 @@ from numpy.typing import NDArray
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from tensegrity_gym.envs.tensegrity_env import TensegrityEnv
 
-__all__ = ["MOVE_FEATURES", "MoveChoice", "move_features", "ranked_moves"]
+__all__ = [
+    "MOVE_FEATURES",
+    "MoveChoice",
+    "MovePolicy",
+    "move_features",
+    "observe_moves",
+    "ranked_moves",
+]
 
 MOVE_FEATURES = 4
 """Entries per move in the observation: the lookahead progress (m), present, stalled,
@@ -70,6 +81,45 @@ def move_features(
     out[2, :k] = stalled[shown]
     out[3, :k] = own[shown]
     return out.ravel(), order
+
+
+def observe_moves(
+    gait: FaceGait, observation: NDArray[np.float32], most: int
+) -> tuple[NDArray[np.float32], NDArray[np.intp]]:
+    """:class:`MoveChoice`'s observation: the env's ``observation`` (o,) followed by
+    :func:`move_features`, (o + 4 * ``most``,); and the face's entries in rank order."""
+    moves, order = move_features(gait, observation, most)
+    return np.concatenate([observation, moves]).astype(np.float32), order
+
+
+class MovePolicy:
+    """A policy of :class:`MoveChoice`'s observations and actions driving an env with
+    absolute actions, one control step at a time: as each gait period begins, ``pick``
+    ranks the support face's entries from :func:`observe_moves`'s observation, and the
+    gait runs the entry of that rank for the period.
+
+    Args:
+        gait: the steering gait the policy was trained on (its own instance: it keeps
+            the period under way and the moves stalled).
+        pick: the trained policy, (o + 4 * most,) observation to a rank.
+    """
+
+    def __init__(self, gait: FaceGait, pick: Callable[[NDArray[np.float32]], int]) -> None:
+        self.gait, self.pick = gait, pick
+        self.most = gait.most_moves
+        gait.chooser = self._choose
+
+    def _choose(self, observation: NDArray[np.float32]) -> int:
+        seen, order = observe_moves(self.gait, observation, self.most)
+        return int(order[int(self.pick(seen)) % len(order)])
+
+    def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
+        """The command for this control step, (m,) in [-1, 1]."""
+        return self.gait(observation)
+
+    def reset(self, _seed: int | None = None) -> None:
+        """Before an episode: no period under way, no move stalled."""
+        self.gait.reset()
 
 
 class MoveChoice(
@@ -110,8 +160,8 @@ class MoveChoice(
 
     def _observed(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         self._last = observation
-        moves, self._order = move_features(self.gait, observation, self.most)
-        return np.concatenate([observation, moves]).astype(np.float32)
+        seen, self._order = observe_moves(self.gait, observation, self.most)
+        return seen
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None

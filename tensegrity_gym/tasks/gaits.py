@@ -256,6 +256,9 @@ class FaceGait:
             raise ValueError(f"horizon must be an integer >= 1 (periods), got {horizon!r}")
         self.horizon = horizon
         """Gait periods a steering gait looks ahead (:meth:`score`)."""
+        self.chooser: Callable[[NDArray[np.float32]], int] | None = None
+        """Picks the support face's entry as each period begins (the index
+        :meth:`begin` takes), from the observation; None: the gait chooses."""
         lo, hi, _ = description.motor_limits
         rest_action = 2.0 * (description.rest_lengths[description.actuated] - lo) / (hi - lo) - 1.0
         self.hold_action = rest_action.astype(np.float32)
@@ -355,7 +358,7 @@ class FaceGait:
         chooses its action (:meth:`begin`)."""
         command = next(self._period, None)
         if command is None:
-            self.begin(observation)
+            self.begin(observation, None if self.chooser is None else self.chooser(observation))
             command = next(self._period)
         self._commanded = command
         return command.copy()

@@ -29,7 +29,7 @@ from tensegrity_gym.model.description import load_robot
 THREE_BAR = "tensegrity_gym/ThreeBarRoll-v0"
 
 
-def _tiny_config(tmp: Path, **overrides: int) -> Path:
+def _tiny_config(tmp: Path, **overrides: Any) -> Path:
     """A PPO config small enough to train in seconds (``overrides``: other values)."""
     config = {
         THREE_BAR: {
@@ -147,6 +147,12 @@ def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
         (["--hyperparams", "gamma:0.9", "gamma:0.8"], "--hyperparams gamma is given twice"),
         (["--hyperparams", "gama:0.9"], "--hyperparams: unknown keys ['gama'] for ppo"),
         (["--hyperparams", "gamma:0.9.9"], "--hyperparams gamma: '0.9.9' is not a Python literal"),
+        (["--moves", "steer", "--algo", "sac"], "sac cannot take (a discrete action)"),
+        (["--moves", "steer", "--residual-gait", "0.5"], "leave out --residual-gait"),
+        (
+            ["--moves", "forward", "--env", "tensegrity_gym/ThreeBarGoTo-v0"],
+            "--moves forward: MoveChoice: the gait 'forward' of three_bar has one entry a face",
+        ),
     ],
 )
 def test_bad_env_kwargs_are_one_line_and_exit_2(
@@ -193,6 +199,30 @@ def test_a_trained_policy_loads_and_acts_on_the_env(tiny_run: Path) -> None:
     assert r.com_error_mean > 0.0  # the UKF is not the truth
     again = evaluate_policy(policy, CONDITIONS["ukf"], episodes=1, seed=5)
     assert again[0].progress == r.progress  # the same seed, the same episode
+
+
+def test_a_policy_of_moves_trains_and_evaluates_through_the_gait(tmp_path: Path) -> None:
+    """``train --moves steer``: PPO picks the steering gait's moves, a step a gait
+    period; the run keeps ``moves``, and its policy drives the plain env step by step
+    (MovePolicy), each episode the same for its seed."""
+    goto = "tensegrity_gym/ThreeBarGoTo-v0"
+    out = tmp_path / "moves"
+    train(goto, "ppo", "oracle", out, timesteps=64, seed=1, progress_bar=False,
+          config_file=_tiny_config(tmp_path, use_sde=True, sde_sample_freq=8),
+          env_kwargs={"max_episode_steps": 140}, moves="steer")  # fmt: skip
+    config = yaml.safe_load((out / "config.yaml").read_text())
+    assert config["moves"] == "steer" and config["completed_timesteps"] == 64
+    assert config["hyperparams"]["use_sde"] is False  # gSDE is for continuous actions
+    # The Monitor, beneath the choice, counts control steps: four periods of 35.
+    log = next((out / "monitor").glob("*.monitor.csv"))
+    lengths = np.loadtxt(log, delimiter=",", skiprows=2, usecols=1, ndmin=1)
+    assert len(lengths) >= 15 and set(lengths) == {140.0}
+    policy = load_policy(out)
+    assert policy.env_kwargs == {}  # the plain env's actions, the gait in the policy
+    [first] = evaluate_policy(policy, CONDITIONS["oracle"], episodes=1, seed=7)
+    [again] = evaluate_policy(policy, CONDITIONS["oracle"], episodes=1, seed=7)
+    assert len(first.true_path) == 601  # the id's own 600 control steps (60 s)
+    assert first.progress == again.progress and np.isfinite(first.progress)
 
 
 def test_mismatch_conditions_evaluate_in_randomised_worlds(tiny_run: Path) -> None:

@@ -8,7 +8,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import tensegrity_gym  # noqa: F401  (registers the ids)
-from tensegrity_gym.envs.moves import MOVE_FEATURES, MoveChoice
+from tensegrity_gym.envs.moves import MOVE_FEATURES, MoveChoice, MovePolicy
 from tensegrity_gym.tasks.gaits import FaceGait
 
 GOTO = "tensegrity_gym/ThreeBarGoTo-v0"
@@ -72,3 +72,47 @@ def test_check_env_and_bad_wrapping() -> None:
         MoveChoice(gym.make(GOTO, estimator="oracle", residual_gait=0.5, base_gait="steer"))
     with pytest.raises(ValueError, match="one entry a face"):
         MoveChoice(gym.make(GOTO, estimator="oracle"), gait="forward")
+
+
+def _second_if_open(observation: np.ndarray, most: int) -> int:
+    """A choice that is not the gait's: rank 1 where the face offers it, as the
+    observation's presence flags say (a rule of the observation alone)."""
+    present = observation[-MOVE_FEATURES * most :].reshape(MOVE_FEATURES, most)[1]
+    return 1 if present[1] == 1.0 else 0
+
+
+def test_a_move_policy_drives_the_env_step_by_step_as_the_wrapper() -> None:
+    """The same rule of MoveChoice's observation, acting through the wrapper (a step a
+    period) and through MovePolicy on the env beneath (a step a control step, as
+    evaluate runs it): the same true path, bit for bit, and the same choices."""
+    moved = MoveChoice(gym.make(GOTO, estimator="oracle", max_episode_steps=140))
+    obs, _ = moved.reset(seed=5)
+    wrapped_path, ranks, done = [], [], False
+    while not done:
+        ranks.append(_second_if_open(obs, moved.most))
+        obs, _, terminated, truncated, info = moved.step(ranks[-1])
+        wrapped_path.append(info["com_true"])
+        done = terminated or truncated
+    assert 1 in ranks  # the rule left the gait's own choice somewhere
+
+    env = gym.make(GOTO, estimator="oracle", max_episode_steps=140)
+    inner = env.unwrapped
+    gait = FaceGait(inner.backend.description, inner.task, gait="steer")
+    picked: list[int] = []
+
+    def pick(seen: np.ndarray) -> int:
+        picked.append(_second_if_open(seen, gait.most_moves))
+        return picked[-1]
+
+    policy = MovePolicy(gait, pick)
+    policy.reset()
+    obs, _ = env.reset(seed=5)
+    path, done = [], False
+    while not done:
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        path.append(info["com_true"])
+        done = terminated or truncated
+    assert picked == ranks
+    period = moved.gait.period_steps
+    ends = [min((k + 1) * period, len(path)) - 1 for k in range(len(ranks))]
+    np.testing.assert_array_equal(np.array(wrapped_path), np.array(path)[ends])
