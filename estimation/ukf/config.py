@@ -126,6 +126,15 @@ class UkfConfig:
     """... in this many updates in a row is a gate lock-out: the covariance is reset to
     its initial size around the current state; a second lock-out soon after counts as
     divergence."""
+    axis_fault_range_share: float = 0.1
+    """A rod's axis gated out while the ranges of those updates fit (at most this share
+    of them gated out in each, and ranges in each) is its AHRS's fault, not the
+    filter's: no lock-out, the axis stays gated. The ranges place every node, so a
+    filter whose rod has turned away from the truth misfits that rod's ranges; an AHRS
+    whose gyro saturated (a 1.45 m robot's base rod spinning on its endcaps faster than
+    the gyro's full scale, on MuJoCo) reads a wrong axis while they fit: counted a
+    lock-out, that reset the covariance and then restarted a filter that was right
+    (three runs of six, ``bench --cross-world``'s 1.45 m 3-bar on MuJoCo)."""
     divergence_anchor_reject_share: float = 0.6
     """Gating out more than this share of the anchor ranges of one update (at least 5)
     counts as divergence at once: the estimate has jumped away from where the anchors
@@ -181,6 +190,11 @@ class UkfConfig:
             raise ValueError(
                 "UkfConfig.divergence_anchor_reject_share must lie in (0, 1), "
                 f"got {self.divergence_anchor_reject_share}"
+            )
+        if not 0 <= self.axis_fault_range_share < 1:
+            raise ValueError(
+                "UkfConfig.axis_fault_range_share must lie in [0, 1), "
+                f"got {self.axis_fault_range_share}"
             )
         if not 0 < self.lockout_range_share < 1:
             raise ValueError(

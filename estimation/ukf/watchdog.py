@@ -61,6 +61,7 @@ class FilterWatchdog:
         self.rod_lengths = rod_lengths
         self._nis: deque[float] = deque(maxlen=config.divergence_window)
         self._range_rejects: deque[float] = deque(maxlen=config.lockout_updates)
+        self._ranges_fit_run = 0  # updates in a row whose ranges fit (axis_fault_range_share)
         self._axis_reject_run = np.zeros(description.n_rods, dtype=np.intp)
         self._anchor_reject: float | None = None
         self._updates = 0
@@ -77,8 +78,12 @@ class FilterWatchdog:
         """Follow one update's gate verdicts; its NIS per accepted row, None without any."""
         kinds = batch.kind
         ranges = kinds == RowKind.RANGE
+        fit = False
         if np.count_nonzero(ranges) >= 5:
-            self._range_rejects.append(float(np.mean(~result.accepted[ranges])))
+            share = float(np.mean(~result.accepted[ranges]))
+            self._range_rejects.append(share)
+            fit = share <= self.config.axis_fault_range_share
+        self._ranges_fit_run = self._ranges_fit_run + 1 if fit else 0
         # Ranges to the anchors place the robot; those between its own nodes only
         # shape it, and still fit when the whole estimate has jumped.
         to_anchor = (batch.range_pairs >= self.description.n_nodes).any(axis=1)
@@ -127,7 +132,10 @@ class FilterWatchdog:
             self._since_reset += 1
         rejects = self._range_rejects
         locked = len(rejects) == rejects.maxlen and min(rejects) > c.lockout_range_share
-        if not (locked or np.any(self._axis_reject_run >= c.lockout_updates)):
+        # An axis the gate shuts out while the ranges fit is its AHRS's fault.
+        ranges_fit = self._ranges_fit_run >= c.lockout_updates
+        axis_locked = bool(np.any(self._axis_reject_run >= c.lockout_updates)) and not ranges_fit
+        if not (locked or axis_locked):
             return Lockout.NONE
         recent = self._since_reset
         if recent is not None and recent < 10 * c.lockout_updates:

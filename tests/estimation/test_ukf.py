@@ -1744,3 +1744,38 @@ def test_first_estimate_is_fitted_to_the_first_samples(robot: str) -> None:
     assert blind.is_finite()
     assert _node_error(blind, truth) < 10 * d.characteristic_length  # in the arena at least
     backend.close()
+
+
+def _gate_verdicts(axis_refused: bool, range_refused: float, n_ranges: int = 20) -> tuple[Any, Any]:
+    """One update's rows as the watchdog reads them: rod 0's axis (three rows), then
+    ``n_ranges`` node-anchor ranges of which the share ``range_refused`` is gated out."""
+    from types import SimpleNamespace
+
+    kind = np.array([RowKind.ROD_AXIS] * 3 + [RowKind.RANGE] * n_ranges)
+    refused = round(range_refused * n_ranges)
+    accepted = np.array([not axis_refused] * 3 + [False] * refused + [True] * (n_ranges - refused))
+    pairs = np.tile([0, 6], (n_ranges, 1))  # node 0 to the first anchor of a 3-bar
+    batch = SimpleNamespace(kind=kind, range_pairs=pairs, axis_rods=np.array([0]))
+    return batch, SimpleNamespace(accepted=accepted, nis=float(np.count_nonzero(accepted)))
+
+
+@pytest.mark.parametrize(
+    ("range_refused", "n_ranges", "expected"),
+    [(0.0, 20, "NONE"), (0.2, 20, "RESET_COVARIANCE"), (0.0, 3, "RESET_COVARIANCE")],
+)
+def test_an_axis_refused_while_the_ranges_fit_is_the_ahrs_fault(
+    range_refused: float, n_ranges: int, expected: str
+) -> None:
+    """Rod 0's axis gated out three updates running: where the ranges of those updates
+    fit, the AHRS is wrong (its gyro saturated), not the filter: no lock-out. Where
+    they misfit too (a fifth gated out) or too few arrived to tell, a lock-out."""
+    from estimation.ukf.watchdog import FilterWatchdog, Lockout
+
+    d = load_robot("three_bar")
+    watchdog = FilterWatchdog(UkfConfig(), d, np.array([rod.length for rod in d.rods]))
+    verdicts = []
+    for _ in range(UkfConfig().lockout_updates):
+        watchdog.observe(*_gate_verdicts(True, range_refused, n_ranges))
+        verdicts.append(watchdog.lockout())
+    assert verdicts[:-1] == [Lockout.NONE] * (len(verdicts) - 1)
+    assert verdicts[-1] is Lockout[expected]
