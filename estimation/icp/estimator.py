@@ -56,7 +56,7 @@ class IcpEstimator:
     frame (none, no depth, no colour) keeps the last estimate and reports unhealthy; a
     lost track re-initialises from colour segmentation at the next frame that allows it,
     and says so (``reinitialised``). :attr:`health` counts the losses by cause
-    (``"fitness"``, ``"jump"``, ...: :attr:`TrackResult.cause`).
+    (``"fitness"``, ``"jump"``, ``"out of view"``...: :attr:`TrackResult.cause`).
     """
 
     needs_camera = True

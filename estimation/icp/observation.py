@@ -98,6 +98,19 @@ def back_project(
     return np.asarray(cam @ camera_pose[:3, :3].T + camera_pose[:3, 3])
 
 
+def project(
+    points: NDArray[np.float64], intrinsics: NDArray[np.float64], camera_pose: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """World points (k, 3) as :func:`back_project` reads pixels: their columns u and
+    rows v (pixel units, the pixel's corner at 0) and depths z (m, along the optical
+    axis; <= 0 behind the camera), each (k,)."""
+    cam = (np.asarray(points, dtype=np.float64) - camera_pose[:3, 3]) @ camera_pose[:3, :3]
+    z = cam[:, 2]
+    safe = np.where(z > 0.0, z, 1.0)
+    fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
+    return fx * cam[:, 0] / safe + cx, fy * cam[:, 1] / safe + cy, z
+
+
 def fit_ground_plane(
     points: NDArray[np.float64],
     rng: np.random.Generator,

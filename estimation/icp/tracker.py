@@ -18,7 +18,13 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
-from estimation.icp.observation import back_project, endcap_masks, fit_ground_plane, rod_hues
+from estimation.icp.observation import (
+    back_project,
+    endcap_masks,
+    fit_ground_plane,
+    project,
+    rod_hues,
+)
 from tensegrity_gym.model.kinematics import weighted_kabsch
 from tensegrity_gym.model.samples import ns_to_seconds, seconds_to_ns
 
@@ -99,7 +105,9 @@ class TrackResult:
     """Why the track was lost, with the figures ("fitness 0.21 below 0.3")."""
     cause: str = ""
     """Why the track was lost, as a key to count by: ``"non-finite"``, ``"fitness"``,
-    ``"jump"`` or ``"cables"``; empty while tracked."""
+    ``"jump"``, ``"cables"`` or ``"out of view"`` (an endcap at the image's edge or
+    beyond, before or after the frame: the robot left what the camera sees); empty
+    while tracked."""
 
 
 def _sphere_points(n: int) -> NDArray[np.float64]:
@@ -175,9 +183,18 @@ class IcpTracker:
 
     def observe(self, frame: RgbdFrame) -> list[NDArray[np.float64]]:
         """Each rod's coloured points in the world frame, [(k_r, 3)]."""
+        return self._observed(frame)[0]
+
+    def _observed(self, frame: RgbdFrame) -> tuple[list[NDArray[np.float64]], int | None]:
+        """:meth:`observe`'s points, and the first rod whose colour reaches the image's
+        edge (the picture cuts it: the robot is partly out of view), or None."""
         masks = endcap_masks(frame.rgb, self.hues)
         K, pose = self.calibration.camera_intrinsics, self.calibration.camera_pose
-        return [back_project(frame.depth, K, pose, m) for m in masks]
+        border = np.zeros(masks.shape[1:], dtype=bool)
+        border[[0, -1], :] = border[:, [0, -1]] = True
+        cut = (masks & border).any(axis=(1, 2))
+        edge = int(np.argmax(cut)) if cut.any() else None
+        return [back_project(frame.depth, K, pose, m) for m in masks], edge
 
     # ------------------------------------------------------------------ initialisation
 
@@ -190,7 +207,9 @@ class IcpTracker:
         """Endcaps from colour segmentation of the whole frame (section 4.1), the ground by
         RANSAC; which endcap is which node is chosen by the cable lengths. False if a rod
         is not seen."""
-        points = self.observe(frame)
+        points, cut = self._observed(frame)
+        if cut is not None:
+            return False  # a robot the camera shows in part is not placed by it
         d = self.description
         nodes = np.zeros((d.n_nodes, 3))
         for k, (i, j) in enumerate(self.rod_nodes):
@@ -200,8 +219,8 @@ class IcpTracker:
             a, b = self._two_clusters(p)
             mid, axis = 0.5 * (a + b), b - a
             norm = np.linalg.norm(axis)
-            if norm < 1e-6:
-                return False
+            if norm < 0.5 * self.node_spacing[k]:
+                return False  # one endcap seen (the other hidden or out of the picture)
             half = 0.5 * self.node_spacing[k] * axis / norm
             nodes[i], nodes[j] = mid - half, mid + half
         nodes = self._choose_ends(nodes, cable_lengths)
@@ -279,7 +298,7 @@ class IcpTracker:
             raise RuntimeError("initialise() before track()")
         p = self.params
         previous = self.nodes.copy()
-        points = self.observe(frame)
+        points, cut = self._observed(frame)
         trees = [cKDTree(pts) if len(pts) else None for pts in points]
         nodes = previous.copy()
         if p.rigid_shape and cable_lengths is not None:
@@ -316,6 +335,13 @@ class IcpTracker:
         t_ns = seconds_to_ns(frame.t)
         dt = max(ns_to_seconds(t_ns - self._t_ns), 1e-3) if self._t_ns is not None else 1.0
         cause, reason = self._loss(nodes, previous, float(ratio.mean()), dt, cable_lengths)
+        if cause:  # a robot leaving the picture loses its track for that reason
+            edge = self.out_of_view(previous, frame.rgb.shape[:2])
+            edge = self.out_of_view(nodes, frame.rgb.shape[:2]) if edge is None else edge
+            if cut is not None:
+                cause, reason = "out of view", f"rod {cut} cut by the image's edge ({reason})"
+            elif edge is not None:
+                cause, reason = "out of view", f"endcap {edge} at the image's edge ({reason})"
         if not cause:
             self.nodes = nodes
             self._dummies = matches
@@ -323,6 +349,17 @@ class IcpTracker:
             self._t_ns = t_ns
         lost = bool(cause)
         return TrackResult(nodes if not lost else previous, ratio, lost, reason, cause)
+
+    def out_of_view(self, nodes: Vec, image: tuple[int, ...]) -> int | None:
+        """The first endcap of ``nodes`` (n, 3) (m, world) that the camera does not
+        show whole in an ``image`` of (rows, columns): its centre behind the camera or
+        nearer the image's edge than its own radius; None where it shows them all."""
+        K, pose = self.calibration.camera_intrinsics, self.calibration.camera_pose
+        u, v, z = project(nodes, K, pose)
+        margin = K[0, 0] * self._node_radius / np.where(z > 0.0, z, 1.0)
+        rows, cols = image[0], image[1]
+        out = (z <= 0.0) | (u < margin) | (u > cols - margin) | (v < margin) | (v > rows - margin)
+        return int(np.argmax(out)) if out.any() else None
 
     def _loss(
         self,

@@ -15,7 +15,7 @@ from estimation.icp.observation import back_project, endcap_masks, fit_ground_pl
 from estimation.metrics import rod_errors
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.kinematics import weighted_kabsch
-from tensegrity_gym.model.samples import RgbdFrame
+from tensegrity_gym.model.samples import CableLengthSample, RgbdFrame
 from tensegrity_gym.sim.backend import SimBackend
 from tensegrity_gym.tasks.gaits import FaceGait
 
@@ -209,3 +209,44 @@ def test_rod_orientations_turn_about_their_axes_as_little_as_possible() -> None:
             turn = np.degrees(Rotation.from_matrix(R[k, r].T @ R[k + 1, r]).magnitude())
             tilt = np.degrees(np.arccos(np.clip(axes[k, r] @ axes[k + 1, r], -1.0, 1.0)))
             assert abs(turn - tilt) < 1e-4  # no spin about the axis
+
+
+def test_project_inverts_back_project(first_frame) -> None:
+    from estimation.icp.observation import project
+
+    sim, frame, _, _ = first_frame
+    K, pose = sim.calibration.camera_intrinsics, sim.calibration.camera_pose
+    mask = frame.depth > 0
+    points = back_project(frame.depth, K, pose, mask)
+    u, v, z = project(points, K, pose)
+    rows, cols = np.nonzero(mask)
+    np.testing.assert_allclose(u, cols + 0.5, atol=1e-6)
+    np.testing.assert_allclose(v, rows + 0.5, atol=1e-6)
+    np.testing.assert_allclose(z, frame.depth[mask], rtol=1e-6)
+
+
+def _cropped(frame: RgbdFrame, columns: int) -> RgbdFrame:
+    """The frame of a camera that sees only its first ``columns`` columns: the robot
+    at its start, whose endcaps span columns 104-136, cut by the picture's edge."""
+    return replace(frame, rgb=frame.rgb[:, :columns].copy(), depth=frame.depth[:, :columns].copy())
+
+
+def test_a_robot_partly_out_of_view_is_not_placed_and_named_when_lost(first_frame) -> None:
+    """A frame that cuts the robot places no rod (a partial view would place it wrong
+    and lose it the next frame); a track lost while the picture cuts the robot is
+    lost "out of view"."""
+    from estimation.icp.tracker import IcpTracker
+
+    sim, frame, _, start = first_frame
+    d = sim.description
+    truth = sim.ground_truth().node_positions
+    tracker = IcpTracker(d, sim.calibration)
+    cut = _cropped(frame, 120)
+    assert tracker.out_of_view(truth, frame.rgb.shape[:2]) is None
+    assert tracker.out_of_view(truth, cut.rgb.shape[:2]) is not None
+    cables = next(s.lengths for s in start if isinstance(s, CableLengthSample))
+    assert not tracker.initialise(cut, cables, np.random.default_rng(0))
+    assert tracker.initialise(frame, cables, np.random.default_rng(0))
+    tracker.nodes = tracker.nodes + np.array([0.5, 0.0, 0.0])  # the track slid away
+    result = tracker.track(replace(cut, t=frame.t + 0.1), cables, np.random.default_rng(0))
+    assert result.lost and result.cause == "out of view", result.reason
