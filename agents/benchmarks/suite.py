@@ -104,6 +104,7 @@ def run_benchmarks(
     engine: str | None = None,
     cross_world: bool = False,
     lab_calibration: bool = False,
+    training: bool = False,
 ) -> dict[str, Any]:
     """Env speed (oracle and UKF), memory, the bag layer (:mod:`agents.benchmarks.bags`) and
     the robot link against the emulator (:mod:`agents.benchmarks.link`, ``link_steps`` 10 Hz
@@ -116,7 +117,9 @@ def run_benchmarks(
     engines side by side (:mod:`agents.benchmarks.engines`); with ``cross_world``, every
     estimator on worlds it was not tuned in (:mod:`agents.benchmarks.cross_world`); with
     ``lab_calibration``, the UWB calibration at a lab's conditions
-    (:mod:`agents.benchmarks.lab_calibration`). ``engine`` runs the env speed and memory
+    (:mod:`agents.benchmarks.lab_calibration`); with ``training``, where PPO's and SAC's
+    training time goes with the UKF in the loop (:mod:`agents.benchmarks.training`).
+    ``engine`` runs the env speed and memory
     figures on that physics engine (None: the default)."""
     with executor(ray_address) as jobs:
         results = _run(speed_steps, memory_steps, estimation, bag_minutes, link_steps,
@@ -134,6 +137,10 @@ def run_benchmarks(
             from agents.benchmarks.lab_calibration import bench_lab_calibration
 
             results["lab_calibration"] = bench_lab_calibration()
+        if training:
+            from agents.benchmarks.training import bench_training
+
+            results["training"] = bench_training()
         if not jobs.local:
             from agents.benchmarks.ray_cluster import bench_ray
 

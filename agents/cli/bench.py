@@ -81,6 +81,12 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
         help="also calibrate the UWB anchors at a lab's conditions: SUPERball carried through "
         "a 10 x 15 m room, 1-3 Hz pairs, no robot-robot ranges, a 4 m common offset",
     )
+    bench.add_argument(
+        "--training",
+        action="store_true",
+        help="also time PPO and SAC training with the UKF in the loop (4,096 steps each): "
+        "env steps/s and the shares of physics, sensors, estimator and policy update",
+    )
     add_engine(bench)
     add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
     bench.add_argument("--out", default=None, help="also write the JSON to this file")
@@ -103,6 +109,7 @@ def run_bench(args: argparse.Namespace) -> int:
         engine=args.engine,
         cross_world=args.cross_world,
         lab_calibration=args.lab_calibration,
+        training=args.training,
     )
     text = json.dumps(results, indent=2)
     if args.out:
