@@ -7,7 +7,7 @@ import pytest
 from agents.benchmarks.training import PARTS, bench_training
 
 
-@pytest.mark.parametrize("algo", ["ppo", "sac"])
+@pytest.mark.parametrize("algo", ["ppo", pytest.param("sac", marks=pytest.mark.slow)])
 def test_the_training_bench_splits_the_run_into_its_parts(algo: str) -> None:
     """Each part timed inside the run takes some of it, and the shares with the rest
     add up to the whole; a SAC run past its learning start updates its policy."""
