@@ -262,6 +262,7 @@ def _comparable(metrics: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in metrics.items() if k not in ("wall_s", "realtime_factor")}
 
 
+@pytest.mark.slow  # the estimation study's replays, here and on the cluster: over 20 s
 def test_estimation_on_ray_gives_the_results_it_gives_here(
     cluster: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
