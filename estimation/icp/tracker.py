@@ -336,11 +336,9 @@ class IcpTracker:
         dt = max(ns_to_seconds(t_ns - self._t_ns), 1e-3) if self._t_ns is not None else 1.0
         cause, reason = self._loss(nodes, previous, float(ratio.mean()), dt, cable_lengths)
         if cause:  # a robot leaving the picture loses its track for that reason
-            edge = self.out_of_view(previous, frame.rgb.shape[:2])
-            edge = self.out_of_view(nodes, frame.rgb.shape[:2]) if edge is None else edge
             if cut is not None:
                 cause, reason = "out of view", f"rod {cut} cut by the image's edge ({reason})"
-            elif edge is not None:
+            elif (edge := self._first_out_of_view(previous, nodes, frame)) is not None:
                 cause, reason = "out of view", f"endcap {edge} at the image's edge ({reason})"
         if not cause:
             self.nodes = nodes
@@ -349,6 +347,11 @@ class IcpTracker:
             self._t_ns = t_ns
         lost = bool(cause)
         return TrackResult(nodes if not lost else previous, ratio, lost, reason, cause)
+
+    def _first_out_of_view(self, previous: Vec, nodes: Vec, frame: RgbdFrame) -> int | None:
+        """:meth:`out_of_view` of the endcaps before the frame, else of those after."""
+        edge = self.out_of_view(previous, frame.rgb.shape[:2])
+        return self.out_of_view(nodes, frame.rgb.shape[:2]) if edge is None else edge
 
     def out_of_view(self, nodes: Vec, image: tuple[int, ...]) -> int | None:
         """The first endcap of ``nodes`` (n, 3) (m, world) that the camera does not

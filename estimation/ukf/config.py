@@ -134,7 +134,7 @@ class UkfConfig:
     whose gyro saturated (a 1.45 m robot's base rod spinning on its endcaps faster than
     the gyro's full scale, on MuJoCo) reads a wrong axis while they fit: counted a
     lock-out, that reset the covariance and then restarted a filter that was right
-    (three runs of six, ``bench --cross-world``'s 1.45 m 3-bar on MuJoCo)."""
+    (two runs of six, ``bench --cross-world``'s 1.45 m 3-bar on MuJoCo)."""
     divergence_anchor_reject_share: float = 0.6
     """Gating out more than this share of the anchor ranges of one update (at least 5)
     counts as divergence at once: the estimate has jumped away from where the anchors

@@ -42,6 +42,7 @@ __all__ = [
     "MOVE_FEATURES",
     "MoveChoice",
     "MovePolicy",
+    "entry_of_rank",
     "move_features",
     "observe_moves",
     "ranked_moves",
@@ -62,6 +63,12 @@ def ranked_moves(
     order of preference: its own choice first, then the others that have not stalled by
     their lookahead progress, the stalled ones last, (m,) entry indices."""
     return np.lexsort((-scores, stalled, -own)).astype(np.intp)
+
+
+def entry_of_rank(order: NDArray[np.intp], rank: int) -> int:
+    """The face's entry that rank ``rank`` (modulo the face's count) names in ``order``
+    (:func:`ranked_moves`)."""
+    return int(order[int(rank) % len(order)])
 
 
 def move_features(
@@ -111,7 +118,7 @@ class MovePolicy:
 
     def _choose(self, observation: NDArray[np.float32]) -> int:
         seen, order = observe_moves(self.gait, observation, self.most)
-        return int(order[int(self.pick(seen)) % len(order)])
+        return entry_of_rank(order, self.pick(seen))
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         """The command for this control step, (m,) in [-1, 1]."""
@@ -180,7 +187,7 @@ class MoveChoice(
         if self._last is None:
             raise RuntimeError("MoveChoice: call reset() before step()")
         observation, order = self._last, self._order
-        self.gait.begin(observation, int(order[int(action) % len(order)]))
+        self.gait.begin(observation, entry_of_rank(order, int(action)))
         total, steps = 0.0, 0
         terminated = truncated = False
         info: dict[str, Any] = {}
