@@ -27,7 +27,10 @@ from tensegrity_gym.model.lie import so3_exp, so3_log
 from tensegrity_gym.model.samples import ImuSample
 from tensegrity_gym.sim.backend import SimBackend
 from tensegrity_gym.tasks.gaits import FaceGait
+from tests.conftest import INEKF_GROUP
 from tests.hardware.test_bag_robustness import _rewrite
+
+pytestmark = INEKF_GROUP
 
 if TYPE_CHECKING:
     from collections.abc import Iterator

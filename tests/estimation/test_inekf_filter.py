@@ -23,7 +23,10 @@ from estimation.inekf.filter import (
     RightInvariantEkf,
 )
 from tensegrity_gym.model.lie import hat, sek3_exp, sek3_log, so3_exp
+from tests.conftest import INEKF_GROUP
 from tests.reference_inekf import ReferenceInekf
+
+pytestmark = INEKF_GROUP
 
 G = np.array([0.0, 0.0, -9.81])
 P0 = np.diag(np.r_[[0.02**2] * 2, 0.2**2, [0.01**2] * 6, [0.01**2] * 3, [0.1**2] * 3])

@@ -15,7 +15,10 @@ from estimation.inekf import ShapeConfig, ShapeReconstructor
 from estimation.inekf.shape import _chirality_values
 from tensegrity_gym.model.description import load_robot
 from tensegrity_gym.model.kinematics import member_lengths
+from tests.conftest import INEKF_GROUP
 from tests.tasks.test_taut_motors import slack_prone
+
+pytestmark = INEKF_GROUP
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
