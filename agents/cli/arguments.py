@@ -208,6 +208,16 @@ def add_engine(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+def add_randomization(parser: argparse.ArgumentParser, help_text: str) -> None:
+    """``--randomization``: the simulated world drawn at each reset from these ranges."""
+    from tensegrity_gym.model.randomization import RANDOMIZATIONS
+
+    parser.add_argument(
+        "--randomization", default=None, choices=sorted(RANDOMIZATIONS),
+        help=f"{help_text} (default: none, the description exactly)",
+    )  # fmt: skip
+
+
 def add_lab_map(parser: argparse.ArgumentParser) -> None:
     """``--lab-map``: read the bag argument as a lab's own recording (imported first)."""
     parser.add_argument(

@@ -13,6 +13,7 @@ from agents.cli.arguments import (
     Command,
     add_engine,
     add_lab_map,
+    add_randomization,
     add_ray,
     calibration_seconds,
     count,
@@ -47,6 +48,11 @@ def add_record(rec: argparse.ArgumentParser) -> None:
                      help="the estimator run (and recorded) in the loop")  # fmt: skip
     rec.add_argument("--driver", default=None, help="a robot on the network: zenoh/tcp/HOST:PORT")
     add_engine(rec)
+    add_randomization(
+        rec,
+        "record worlds drawn from these ranges at each reset (the draws "
+        "go into the bag's /tensegrity/run_info)",
+    )
     rec.add_argument("--out", required=True, help="folder for the bags (episode_000, ...)")
     rec.add_argument("--markers", action=argparse.BooleanOptionalAction, default=True,
                      help="write /tf and /tensegrity/markers (what ROS viewers draw) at the "
@@ -71,6 +77,7 @@ def run_record(args: argparse.Namespace) -> int:
             driver=args.driver,
             markers=args.markers,
             engine=args.engine,
+            randomization=args.randomization,
         )
     except KeyboardInterrupt:
         log.warning("interrupted: the bag being written was closed and is complete so far")

@@ -10,6 +10,7 @@ from typing import Any
 from agents.cli.arguments import (
     Command,
     add_engine,
+    add_randomization,
     add_ray,
     count,
     env_help,
@@ -122,7 +123,6 @@ def add_train(tr: argparse.ArgumentParser) -> None:
     """``train``'s options: the env, the algorithm and its hyperparameters, the run."""
     from agents.training.presets import PRESETS
     from agents.training.train import ALGORITHMS
-    from tensegrity_gym.model.randomization import RANDOMIZATIONS
     from tensegrity_gym.model.registry import ESTIMATORS
 
     tr.add_argument("--env", default="tensegrity_gym/ThreeBarRoll-v0", help=env_help())
@@ -135,10 +135,7 @@ def add_train(tr: argparse.ArgumentParser) -> None:
         "--n-envs", type=positive_int, default=None, help="workers; default: the config's"
     )
     tr.add_argument("--config", default=None, help="hyperparameter YAML (rl-zoo3 layout)")
-    tr.add_argument(
-        "--randomization", default=None, choices=sorted(RANDOMIZATIONS),
-        help="train in worlds drawn from these ranges at each reset (default: none)",
-    )  # fmt: skip
+    add_randomization(tr, "train in worlds drawn from these ranges at each reset")
     tr.add_argument(
         "--residual-gait", type=positive_float, default=None, metavar="SCALE",
         help="actions correct the robot's scripted gait, scaled by SCALE "

@@ -146,10 +146,12 @@ def record(
     driver: str | None = None,
     markers: bool = True,
     engine: str | None = None,
+    randomization: str | None = None,
 ) -> list[Path]:
     """Run ``episodes`` episodes of ``policy`` on ``env_id`` and write one bag each into
     ``out``; ``driver`` (``"zenoh/tcp/HOST:PORT"``) runs a robot on the network instead
     of the id's default; ``engine`` the simulator's physics engine (None: the default);
+    ``randomization`` the ranges each episode's world is drawn from (``gym.make``'s);
     ``markers`` writes what viewers draw (``/tf``, the robot as
     markers) at the control rate. Returns the bags written. An interruption (Ctrl-C, SIGTERM)
     closes the current bag properly before it propagates; a run that fails before it
@@ -159,7 +161,8 @@ def record(
     new = _new_folders(Path(out))
     try:
         kwargs: dict[str, Any] = {"estimator": estimator, "record_dir": out}
-        kwargs |= {k: v for k, v in (("driver", driver), ("engine", engine)) if v is not None}
+        given = (("driver", driver), ("engine", engine), ("randomization", randomization))
+        kwargs |= {k: v for k, v in given if v is not None}
         if steps is not None:
             kwargs["max_episode_steps"] = steps
         return _record(env_id, policy, episodes, seed, flush_period, markers, kwargs)

@@ -302,6 +302,17 @@ def test_a_bag_of_another_robot_is_refused(recorded_env_run: tuple[Path, Any]) -
 # ---------------------------------------------------------------------- commands
 
 
+def test_record_writes_a_randomised_worlds_draws_into_the_bag(tmp_path: Path) -> None:
+    out = tmp_path / "bags"
+    argv = ["record", "--steps", "2", "--estimator", "oracle", "--out", str(out)]
+    assert cli_main([*argv, "--randomization", "description"]) == 0
+    with BagReader(out / "episode_000") as reader:
+        draws = reader.run_info["randomization"]
+    # The description's error: rods drawn off their length, encoders off their zero.
+    assert len(draws["rod_length"]) == 3 and any(abs(r - 1.0) > 1e-3 for r in draws["rod_length"])
+    assert max(abs(z) for z in draws["encoder_zero_m"]) > 1e-3
+
+
 def test_record_and_estimate_commands(tmp_path: Path) -> None:
     rc = cli_main(
         [
