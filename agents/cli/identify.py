@@ -16,14 +16,15 @@ __all__ = ["COMMANDS"]
 
 def add_identify(ide: argparse.ArgumentParser) -> None:
     """``identify``'s options: the bag, the parameters fitted, the model, the search."""
-    from agents.identification.identify import MAX_EVALUATIONS, MODELS, PARAMETERS
+    from agents.identification.identify import GROUPS, MAX_EVALUATIONS, MODELS
 
     ide.add_argument("bag", help="a bag with commands, encoders and a trajectory")
     ide.add_argument("--out", required=True, help="the fitted robot description to write (YAML)")
     ide.add_argument(
         "--params", default="stiffness,damping,rest,friction,motor",
-        help=f"comma-separated parameter groups, of {', '.join(sorted(PARAMETERS))} (mass "
-        "only without stiffness and damping: the motion cannot tell them apart)",
+        help=f"comma-separated parameter groups, of {', '.join(sorted(GROUPS))} (mass "
+        "only without stiffness and damping: the motion cannot tell them apart; geometry, "
+        "a factor per rod length and passive rest length, instead of rest)",
     )  # fmt: skip
     ide.add_argument("--robot", default=None, help="start from this preset or YAML, not the bag's")
     ide.add_argument("--model", choices=sorted(MODELS), default="sim",

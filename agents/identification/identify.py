@@ -57,9 +57,11 @@ if TYPE_CHECKING:
     from tensegrity_gym.sim.world import PhysicsWorld
 
 __all__ = [
+    "GROUPS",
     "MAX_EVALUATIONS",
     "MODELS",
     "PARAMETERS",
+    "PER_PART",
     "Frame",
     "Identification",
     "IdentifyError",
@@ -137,15 +139,62 @@ PARAMETERS: dict[str, tuple[tuple[str, Setter], ...]] = {
 """``--params`` groups: each names one or more factors, by which it scales the
 description's values (all cables' damping, every rod's mass, ...)."""
 
+
+def _rod_length(index: int) -> Setter:
+    def scaled(d: RobotDescription, factor: float) -> RobotDescription:
+        rods = list(d.rods)
+        rods[index] = replace(rods[index], length=rods[index].length * factor)
+        return replace(d, rods=tuple(rods))
+
+    return scaled
+
+
+def _rest_length(index: int) -> Setter:
+    def scaled(d: RobotDescription, factor: float) -> RobotDescription:
+        cables = list(d.cables)
+        cables[index] = replace(cables[index], rest_length=cables[index].rest_length * factor)
+        return replace(d, cables=tuple(cables))
+
+    return scaled
+
+
+def _geometry(d: RobotDescription) -> list[tuple[str, Setter]]:
+    """The ``geometry`` group: each rod's length (endcap to endcap) and each passive
+    cable's rest length, a factor each: what a tape measure gets a few millimetres
+    wrong, and a motion fitted with the global factors cannot absorb."""
+    rods = [(f"rod_length[{rod.name}]", _rod_length(i)) for i, rod in enumerate(d.rods)]
+    rest = [(f"rest_length[{c.name}]", _rest_length(k)) for k, c in enumerate(d.cables)
+            if not c.actuated]  # fmt: skip
+    return rods + rest
+
+
+PER_PART: dict[str, Callable[[RobotDescription], list[tuple[str, Setter]]]] = {
+    "geometry": _geometry,
+}
+"""``--params`` groups with a factor per rod or cable, named for it (``rod_length[r0]``)."""
+GROUPS = (*PARAMETERS, *PER_PART)
+"""Every ``--params`` group."""
+
+
+def _setters(description: RobotDescription) -> dict[str, Setter]:
+    """Every factor's setter by name, the per-part ones of ``description``."""
+    setters = {name: setter for group in PARAMETERS.values() for name, setter in group}
+    for parts in PER_PART.values():
+        setters.update(parts(description))
+    return setters
+
+
 _BOUND = {"passive_rest_length": np.log(1.2)}
 """Largest |log factor| searched, per factor; the others: a factor of 2 either way."""
+_PART_BOUND = {"rod_length": np.log(1.15), "rest_length": np.log(1.2)}
+"""The same, per part (the name before ``[``): a rod within 15 % of its length."""
 AT_BOUND_SHARE = 0.95
 """A factor whose |log| ends beyond this share of its bound's has ended at its bound."""
 
 
 def factor_bounds(names: Sequence[str]) -> NDArray[np.float64]:
     """(p,) the largest |log factor| the search tries for each of ``names``."""
-    return np.array([_BOUND.get(n, np.log(2.0)) for n in names])
+    return np.array([_BOUND.get(n, _PART_BOUND.get(n.split("[")[0], np.log(2.0))) for n in names])
 
 
 def apply_parameters(
@@ -153,7 +202,7 @@ def apply_parameters(
 ) -> RobotDescription:
     """``description`` with each named factor (``PARAMETERS``' inner names) applied as
     ``exp(log_factor)``."""
-    setters = {name: setter for group in PARAMETERS.values() for name, setter in group}
+    setters = _setters(description)
     d = description
     for name, value in zip(names, log_factors, strict=True):
         d = setters[name](d, float(np.exp(value)))
@@ -173,16 +222,23 @@ def parameter_values(description: RobotDescription, name: str) -> float:
         "mass": lambda: description.rods[0].mass,
         "motor_speed": lambda: actuated[0].motor.max_speed if actuated[0].motor else np.nan,
     }
-    return float(values[name]())
+    parts = {f"rod_length[{rod.name}]": rod.length for rod in description.rods}
+    parts |= {f"rest_length[{c.name}]": c.rest_length for c in passive}
+    return float(parts[name] if name in parts else values[name]())
 
 
 def factor_names(groups: Sequence[str], description: RobotDescription) -> list[str]:
     """The factors of the ``--params`` groups; an unknown group refused with the valid
     ones; a group the robot has nothing for (passive cables, motors) left out."""
-    unknown = [g for g in groups if g not in PARAMETERS]
+    unknown = [g for g in groups if g not in GROUPS]
     if unknown:
         raise IdentifyError(
-            f"identify: unknown parameter group {unknown[0]!r}; choose from {sorted(PARAMETERS)}"
+            f"identify: unknown parameter group {unknown[0]!r}; choose from {sorted(GROUPS)}"
+        )
+    if {"geometry", "rest"} <= set(groups):
+        raise IdentifyError(
+            "identify: rest scales every passive cable's rest length, geometry each one's: "
+            "give one of them"
         )
     if "mass" in groups and ({"stiffness", "damping"} & set(groups)):
         raise IdentifyError(
@@ -191,7 +247,11 @@ def factor_names(groups: Sequence[str], description: RobotDescription) -> list[s
             "and friction scale with the mass); weigh the rods, or fit mass alone"
         )
     has_passive = any(not c.actuated for c in description.cables)
-    names = [name for g in groups for name, _ in PARAMETERS[g]]
+    names = [
+        name
+        for g in groups
+        for name, _ in (PARAMETERS[g] if g in PARAMETERS else PER_PART[g](description))
+    ]
     return [n for n in names if has_passive or not n.startswith("passive")]
 
 
