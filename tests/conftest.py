@@ -25,9 +25,10 @@ ENV_IDS = tensegrity_gym.env_ids(hardware=None)
 """Every id: the simulated namespace's and the robot's."""
 HARDWARE_IDS = tensegrity_gym.env_ids(hardware=True)
 """Ids of robots on the network: the tests run them against the emulator."""
-# The InEKF's test modules share one worker (``pytestmark = INEKF_GROUP``): it compiles the
-# filter's and shape solver's kernels once (numba, over a minute on first use), where split
-# across workers each compiled them.
+# The InEKF's three test modules (test_inekf, test_shape, test_inekf_filter) share one worker
+# (``pytestmark = INEKF_GROUP``): it compiles the filter's and shape solver's kernels once
+# for them (numba, over a minute from a cold cache), where split across workers each
+# compiled them. Other modules that run the InEKF still compile on their own worker.
 INEKF_GROUP = pytest.mark.xdist_group("inekf")
 
 

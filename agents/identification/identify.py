@@ -27,7 +27,7 @@ import os
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
+from typing import TYPE_CHECKING, NamedTuple, Protocol
 
 import numpy as np
 
@@ -85,14 +85,16 @@ class IdentifyError(ValueError):
 # ---------------------------------------------------------------- the parameters
 
 
-def _scaled_cables(d: RobotDescription, field: str, factor: float, which: bool | None) -> Any:
+def _scaled_cables(
+    d: RobotDescription, field: str, factor: float, which: bool | None, index: int | None = None
+) -> RobotDescription:
     """``d``'s cables with ``field`` times ``factor``, for the actuated ones (True), the
-    passive ones (False) or all (None)."""
+    passive ones (False) or all (None); only cable ``index`` where one is given."""
     cables = tuple(
         replace(c, **{field: getattr(c, field) * factor})
-        if which is None or c.actuated == which
+        if (which is None or c.actuated == which) and index in (None, k)
         else c
-        for c in d.cables
+        for k, c in enumerate(d.cables)
     )
     return replace(d, cables=cables)
 
@@ -142,30 +144,32 @@ description's values (all cables' damping, every rod's mass, ...)."""
 
 def _rod_length(index: int) -> Setter:
     def scaled(d: RobotDescription, factor: float) -> RobotDescription:
-        rods = list(d.rods)
-        rods[index] = replace(rods[index], length=rods[index].length * factor)
-        return replace(d, rods=tuple(rods))
+        return d.with_rod_length(index, d.rods[index].length * factor)
 
     return scaled
 
 
 def _rest_length(index: int) -> Setter:
     def scaled(d: RobotDescription, factor: float) -> RobotDescription:
-        cables = list(d.cables)
-        cables[index] = replace(cables[index], rest_length=cables[index].rest_length * factor)
-        return replace(d, cables=tuple(cables))
+        return _scaled_cables(d, "rest_length", factor, None, index)
 
     return scaled
 
 
-def _geometry(d: RobotDescription) -> list[tuple[str, Setter]]:
-    """The ``geometry`` group: each rod's length (endcap to endcap) and each passive
-    cable's rest length, a factor each: what a tape measure gets a few millimetres
-    wrong, and a motion fitted with the global factors cannot absorb."""
-    rods = [(f"rod_length[{rod.name}]", _rod_length(i)) for i, rod in enumerate(d.rods)]
-    rest = [(f"rest_length[{c.name}]", _rest_length(k)) for k, c in enumerate(d.cables)
-            if not c.actuated]  # fmt: skip
+def _geometry_parts(d: RobotDescription) -> list[tuple[str, Setter, float]]:
+    """Each rod's length (endcap to endcap) and each passive cable's rest length: the
+    factor's name, its setter and the description's value (m)."""
+    rods = [(f"rod_length[{rod.name}]", _rod_length(i), rod.length) for i, rod in enumerate(d.rods)]
+    rest = [(f"rest_length[{c.name}]", _rest_length(k), c.rest_length)
+            for k, c in enumerate(d.cables) if not c.actuated]  # fmt: skip
     return rods + rest
+
+
+def _geometry(d: RobotDescription) -> list[tuple[str, Setter]]:
+    """The ``geometry`` group: a factor per rod length and passive rest length, what a
+    tape measure gets a few millimetres wrong, and a motion fitted with the global
+    factors cannot absorb."""
+    return [(name, setter) for name, setter, _ in _geometry_parts(d)]
 
 
 PER_PART: dict[str, Callable[[RobotDescription], list[tuple[str, Setter]]]] = {
@@ -200,11 +204,14 @@ def factor_bounds(names: Sequence[str]) -> NDArray[np.float64]:
 def apply_parameters(
     description: RobotDescription, names: Sequence[str], log_factors: NDArray[np.float64]
 ) -> RobotDescription:
-    """``description`` with each named factor (``PARAMETERS``' inner names) applied as
-    ``exp(log_factor)``."""
+    """``description`` with each named factor (``PARAMETERS``' inner names, and the
+    per-part ones of ``PER_PART`` such as ``rod_length[red]``) applied as
+    ``exp(log_factor)``; a name the description has no part for, IdentifyError."""
     setters = _setters(description)
     d = description
     for name, value in zip(names, log_factors, strict=True):
+        if name not in setters:
+            raise IdentifyError(f"identify: {description.name!r} has no factor {name!r}")
         d = setters[name](d, float(np.exp(value)))
     return d
 
@@ -222,8 +229,7 @@ def parameter_values(description: RobotDescription, name: str) -> float:
         "mass": lambda: description.rods[0].mass,
         "motor_speed": lambda: actuated[0].motor.max_speed if actuated[0].motor else np.nan,
     }
-    parts = {f"rod_length[{rod.name}]": rod.length for rod in description.rods}
-    parts |= {f"rest_length[{c.name}]": c.rest_length for c in passive}
+    parts = {part: value for part, _, value in _geometry_parts(description)}
     return float(parts[name] if name in parts else values[name]())
 
 
@@ -689,7 +695,7 @@ def identify_run(
     time_step: float = 0.001,
     imu_windows_most: int = 300,
 ) -> Identification:
-    """Fit the factors of the ``groups`` (``PARAMETERS``) of ``description`` (default:
+    """Fit the factors of the ``groups`` (``GROUPS``) of ``description`` (default:
     the run's own) so that ``model`` (``MODELS``) replays ``run`` as recorded: the
     IMU's readings over one period from each of at most ``imu_windows_most`` recorded
     states, where the model is the simulator's and the bag has an IMU topic (0: never),

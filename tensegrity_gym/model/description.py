@@ -11,7 +11,7 @@ its two endcap (node) centres; its overall length is ``length + 2 * endcap_radiu
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
 from importlib import resources
 from pathlib import Path
@@ -456,6 +456,22 @@ class RobotDescription:
     def characteristic_length(self) -> float:
         """Mean rod length (m): the scale of the robot."""
         return float(np.mean([r.length for r in self.rods]))
+
+    def with_rod_length(self, rod: int, length: float) -> RobotDescription:
+        """This description with rod ``rod``'s length set to ``length`` (m), its two
+        nodes moved along the rod, about its centre, to match: a description that
+        assembles (and so loads again once written) as the one it came from."""
+        r = self.rods[rod]
+        a, b = r.nodes
+        ends = self.initial_positions[[a, b]]
+        centre, half = ends.mean(axis=0), 0.5 * (ends[1] - ends[0])
+        half *= length / (2.0 * float(np.linalg.norm(half)))
+        nodes = list(self.nodes)
+        for node, end in ((a, centre - half), (b, centre + half)):
+            nodes[node] = replace(nodes[node], position=_vec3(tuple(end.tolist())))
+        rods = list(self.rods)
+        rods[rod] = replace(r, length=length)
+        return replace(self, nodes=tuple(nodes), rods=tuple(rods))
 
 
 # ----------------------------------------------------------------------------- loading

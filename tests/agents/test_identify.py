@@ -29,7 +29,7 @@ from agents.identification.imu import imu_features, window_scores, without_imu
 from agents.identification.report import fit_notes
 from hardware.recording import MemorySink, RecordedRun, RecordingBackend
 from tensegrity_gym.envs.factory import make_env
-from tensegrity_gym.model.description import load_robot
+from tensegrity_gym.model.description import dump_robot, load_robot, loads_robot
 from tensegrity_gym.model.description import load_robot as load
 from tensegrity_gym.model.lie import quat_from_rotvec, quat_rotate
 from tensegrity_gym.tasks.gaits import FaceGait
@@ -114,6 +114,16 @@ def test_the_geometry_group_has_a_factor_per_rod_and_passive_cable() -> None:
     rest = apply_parameters(NOMINAL, names[-1:], np.log([0.9])).rest_lengths
     changed = np.flatnonzero(rest != NOMINAL.rest_lengths)
     assert [NOMINAL.cables[k].name for k in changed] == passive[-1:]
+    np.testing.assert_allclose(rest[changed], 0.9 * NOMINAL.rest_lengths[changed], rtol=1e-12)
+    # A rod made longer keeps its centre and axis, its nodes moved apart: written out,
+    # the fitted robot loads again (a rod's nodes must lie its length apart).
+    again = loads_robot(dump_robot(fitted))
+    ends = again.initial_positions[list(again.rods[1].nodes)]
+    assert np.linalg.norm(ends[1] - ends[0]) == pytest.approx(lengths[1], rel=1e-9)
+    nominal_ends = NOMINAL.initial_positions[list(NOMINAL.rods[1].nodes)]
+    np.testing.assert_allclose(ends.mean(axis=0), nominal_ends.mean(axis=0), atol=1e-12)
+    with pytest.raises(IdentifyError, match=r"has no factor 'rod_length\[purple\]'"):
+        apply_parameters(NOMINAL, ["rod_length[purple]"], np.zeros(1))
     # A rod searched within 15 %, a rest length within 20 %, the global factors 2x.
     np.testing.assert_allclose(
         np.exp(factor_bounds([*names[:1], names[-1], "damping"])), [1.15, 1.2, 2.0]
