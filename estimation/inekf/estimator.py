@@ -155,6 +155,9 @@ class InekfEstimator:
         self._cov_kinematics = [np.repeat(np.eye(3)[None] * c.kinematics_std**2, k, axis=0)
                                 for k in range(d.n_nodes + 1)]  # fmt: skip
         self._clipped = self._gyro_clipped = False
+        self._imu_period = 1.0 / float(d.sensors.imu.rate)
+        self._accel_spread = 0.0  # (m/s^2)^2: the base accelerometer's mean square off its low-pass
+        self._gap_variance = 0.0  # (m/s)^2: what lost readings add to the next propagation
         self._rest = np.asarray(command, dtype=np.float64).copy()
         self._cables: NDArray[np.float64] | None = None
         self._sensed: NDArray[np.bool_] | None = None
@@ -286,13 +289,20 @@ class InekfEstimator:
         """Propagate over the time since the last reading with that reading held;
         ``accel``: the reading's as a (3,) float64 array, where the caller has it."""
         if self._imu_ns is not None and t_ns > self._imu_ns:
-            self._propagate(ns_to_seconds(t_ns - self._imu_ns))
+            dt = ns_to_seconds(t_ns - self._imu_ns)
+            self._gap_variance = self._lost_variance(dt)
+            self._propagate(dt)
+            self._gap_variance = 0.0
         if self._imu_ns is None or t_ns >= self._imu_ns:
             self._imu_ns = t_ns
             self._gyro = np.ascontiguousarray(s.gyro, dtype=np.float64)
             self._accel = (
                 np.ascontiguousarray(s.accel, dtype=np.float64) if accel is None else accel
             )
+            smooth = self._rod_accel[self.config.base_rod]
+            if not math.isnan(smooth[0]):
+                off = self._accel - smooth
+                self._accel_spread += ROD_TILT_GAIN * (float(off @ off) - self._accel_spread)
             ax, ay, az = self._accel.tolist()  # 3 floats: faster than numpy's reductions
             wx, wy, wz = self._gyro.tolist()
             self._clipped = max(abs(ax), abs(ay), abs(az)) >= self._clip
@@ -300,12 +310,24 @@ class InekfEstimator:
             self._t_ns = max(self._t_ns, t_ns)
             self._rest_phase(self._gyro)
 
+    def _lost_variance(self, dt: float) -> float:
+        """(m/s)^2 per axis the velocity's error grows by over ``dt`` s since the last
+        base-rod reading, beyond the IMU's noise: 0 unless readings were lost
+        (:attr:`InekfConfig.imu_gap_share`), else the accelerometer's recent mean square
+        about its low-pass times the missing time squared."""
+        share = self.config.imu_gap_share
+        missing = dt - self._imu_period
+        if share is None or missing <= share * self._imu_period:
+            return 0.0
+        return self._accel_spread * missing * missing
+
     def _propagate(self, dt: float) -> None:
         """Propagate over ``dt`` s with the held reading, in one compiled call
         (:meth:`RightInvariantEkf.propagate_reading`): the contacts' slip density by the
         angular rate, as the endcaps slide while the robot tips over; the velocity made
         uncertain where the reading clipped, by the full scale over the step (the
-        velocity change it missed); the base rod's endcaps in contact rolled by its
+        velocity change it missed) and where readings were lost before this one
+        (:meth:`_lost_variance`); the base rod's endcaps in contact rolled by its
         spin (gyro z): a sphere of radius r turning by theta about the rod moves its
         centre by theta x (r up). The rods roll about their own axes as the robot tips
         over, and an endcap held fixed made the estimate lag the robot's travel
@@ -320,6 +342,7 @@ class InekfEstimator:
                 [self._base_endcap_radius if n in self._base_nodes else 0.0 for n in nodes]
             ) if self.config.rolling_endcaps else np.zeros(len(nodes))  # fmt: skip
         variance = (self._full_scale * dt) ** 2 if self._clipped else 0.0
+        variance += self._gap_variance
         turn = (self._gyro_full_scale * dt) ** 2 if self._gyro_clipped else 0.0
         f.propagate_reading(
             self._gyro, self._accel, dt, self._slip_law, variance, self._roll_radii, turn
