@@ -47,6 +47,8 @@ __all__ = [
     "WORLDS",
     "bench_cross_world",
     "nees_per_dof",
+    "score_run",
+    "summary",
 ]
 
 WORLDS: dict[str, dict[str, Any]] = {
@@ -108,7 +110,7 @@ def nees_per_dof(run: RecordedRun, estimates: list[Estimate], settle: float = 2.
     return float(np.mean(values)) if values else float("nan")
 
 
-def _score(run: RecordedRun, estimator: str, seed: int) -> dict[str, Any]:
+def score_run(run: RecordedRun, estimator: str, seed: int) -> dict[str, Any]:
     """One estimator replayed on one run: its figures, the path the robot's CoM took
     (m, in the ground plane) and why the estimator re-initialised (``reasons``)."""
     made = VARIANTS[estimator]() if estimator in VARIANTS else estimator_spec(estimator).create()
@@ -140,7 +142,7 @@ def _reduce(values: list[float], how: Any) -> float:
     return round(float(how(finite)), 4) if finite else float("nan")
 
 
-def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Means and maxima of the runs' figures, and their re-initialisations by reason."""
     keys = [k for k in rows[0] if k != "reasons"]
     reasons: dict[str, int] = {}
@@ -190,10 +192,10 @@ def bench_cross_world(
         for world in worlds:
             runs = _runs(motions, WORLDS[world], seeds, steps, camera)
             for e in mine:
-                scores = {key: _score(run, e, key[1]) for key, run in runs.items()}
-                rows[e][world] = _summary(list(scores.values())) | {
+                scores = {key: score_run(run, e, key[1]) for key, run in runs.items()}
+                rows[e][world] = summary(list(scores.values())) | {
                     "by_motion": {
-                        m: _summary([s for (mm, _), s in scores.items() if mm == m])["mean"]
+                        m: summary([s for (mm, _), s in scores.items() if mm == m])["mean"]
                         for m in motions
                     }
                 }

@@ -103,6 +103,7 @@ def run_benchmarks(
     engines: bool = False,
     engine: str | None = None,
     cross_world: bool = False,
+    streams: bool = False,
     lab_calibration: bool = False,
     training: bool = False,
 ) -> dict[str, Any]:
@@ -116,6 +117,8 @@ def run_benchmarks(
     estimation study's replays as Ray tasks on that cluster; with ``engines``, the physics
     engines side by side (:mod:`agents.benchmarks.engines`); with ``cross_world``, every
     estimator on worlds it was not tuned in (:mod:`agents.benchmarks.cross_world`); with
+    ``streams``, the UKF and the invariant EKF on a lab's imperfect sensor streams
+    (:mod:`agents.benchmarks.streams`); with
     ``lab_calibration``, the UWB calibration at a lab's conditions
     (:mod:`agents.benchmarks.lab_calibration`); with ``training``, where PPO's and SAC's
     training time goes with the UKF in the loop (:mod:`agents.benchmarks.training`).
@@ -133,6 +136,10 @@ def run_benchmarks(
             from agents.benchmarks.cross_world import bench_cross_world
 
             results["cross_world"] = bench_cross_world()
+        if streams:
+            from agents.benchmarks.streams import bench_streams
+
+            results["streams"] = bench_streams()
         if lab_calibration:
             from agents.benchmarks.lab_calibration import bench_lab_calibration
 

@@ -76,6 +76,13 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
         "tensegrity-gym[mujoco])",
     )
     bench.add_argument(
+        "--streams",
+        action="store_true",
+        help="also score the UKF and the invariant EKF on sensor streams as a lab's robot "
+        "gives them: readings lost, late, jittered, biased, coarse; headings disturbed; "
+        "UWB ranges through a body or lost (3 seeds, rolling and turning)",
+    )
+    bench.add_argument(
         "--lab-calibration",
         action="store_true",
         help="also calibrate the UWB anchors at a lab's conditions: SUPERball carried through "
@@ -108,6 +115,7 @@ def run_bench(args: argparse.Namespace) -> int:
         engines=args.engines,
         engine=args.engine,
         cross_world=args.cross_world,
+        streams=args.streams,
         lab_calibration=args.lab_calibration,
         training=args.training,
     )
