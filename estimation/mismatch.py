@@ -30,7 +30,14 @@ if TYPE_CHECKING:
 
     from tensegrity_gym.model.description import RobotDescription
 
-__all__ = ["MISMATCH_EVIDENCE", "ChannelLimits", "LimitMismatch"]
+__all__ = [
+    "MISMATCH_EVIDENCE",
+    "RATE_EVIDENCE",
+    "RATE_TOLERANCE",
+    "ChannelLimits",
+    "LimitMismatch",
+    "RateMismatch",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -161,3 +168,67 @@ class LimitMismatch:
             f"{lim.names[k]} reads {seen}, the description's {lim.what} is "
             f"{lim.low[k]:.3f}-{lim.high[k]:.3f} m"
         )
+
+
+RATE_EVIDENCE = 200
+"""Intervals between a stream's readings taken before its rate is judged."""
+RATE_TOLERANCE = 0.25
+"""Share by which a stream's median interval may differ from the described period."""
+
+
+class RateMismatch:
+    """Streams whose readings come at another rate than the description's.
+
+    Each stream's median interval over its first :data:`RATE_EVIDENCE` intervals (a
+    reading lost or a jittered stamp moves a median little) is set against the period
+    its description gives; off by more than :data:`RATE_TOLERANCE`, the stream is said
+    once, in one line, and kept in :attr:`mismatches` (an IMU at 100 Hz described at
+    200 Hz, say: the estimators' noise densities and gap checks read the description).
+    The readings stay in use. Intervals are of the samples' own stamps, in integer ns.
+
+    Args:
+        rates: Hz by stream name (``"imu/red"``, ``"encoders"``).
+    """
+
+    def __init__(self, rates: dict[str, float]) -> None:
+        self.rates = dict(rates)
+        self._last_ns: dict[str, int] = {}
+        self._intervals: dict[str, list[int]] = {}
+        self._judged: set[str] = set()
+        self._lines: list[str] = []
+
+    @property
+    def mismatches(self) -> tuple[str, ...]:
+        """A line per stream found at another rate, in the order found."""
+        return tuple(self._lines)
+
+    def accept(self, stream: str, times: NDArray[np.float64]) -> None:
+        """Readings of ``stream`` stamped ``times`` (k,) s arrived; a stream without a
+        described rate, or judged already, is not looked at."""
+        if stream in self._judged or stream not in self.rates:
+            return
+        gaps = self._intervals.setdefault(stream, [])
+        last = self._last_ns.get(stream)
+        for t in times.tolist():
+            t_ns = seconds_to_ns(t)
+            if last is not None and t_ns > last:
+                gaps.append(t_ns - last)
+            if last is None or t_ns > last:
+                last = t_ns
+        if last is not None:
+            self._last_ns[stream] = last
+        if len(gaps) >= RATE_EVIDENCE:
+            self._judge(stream, gaps)
+
+    def _judge(self, stream: str, gaps: list[int]) -> None:
+        self._judged.add(stream)
+        del self._intervals[stream]
+        median = float(np.median(gaps)) * 1e-9
+        rate = self.rates[stream]
+        if abs(median * rate - 1.0) > RATE_TOLERANCE:
+            line = (
+                f"{stream} reads every {median * 1e3:.1f} ms ({1.0 / median:.0f} Hz); the "
+                f"description's rate is {rate:g} Hz"
+            )
+            self._lines.append(line)
+            _log.warning("%s", line)

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from estimation.mismatch import ChannelLimits, LimitMismatch
+from estimation.mismatch import ChannelLimits, LimitMismatch, RateMismatch
 from estimation.plausibility import Verdict
 from tensegrity_gym.model.samples import (
     AhrsSample,
@@ -155,6 +155,8 @@ class PlausibilityScreen:
         self._n_cables = d.n_cables
         self._n_actuated = d.n_actuated
         self.encoder_mismatch = LimitMismatch(ChannelLimits.motors(d))
+        rates = {f"imu/{name}": d.sensors.imu.rate for name in self._rods}
+        self.rate_mismatch = RateMismatch(rates | {"encoders": d.sensors.encoder.rate})
         self.beyond_description: dict[str, int] = {}
         """Readings kept although beyond the description's limits, by kind."""
 
@@ -165,8 +167,9 @@ class PlausibilityScreen:
 
     @property
     def mismatches(self) -> tuple[str, ...]:
-        """A line per channel whose readings contradict the description (kept in use)."""
-        return self.encoder_mismatch.mismatches
+        """A line per channel whose readings contradict the description (kept in use):
+        beyond its limits, or at another rate."""
+        return self.encoder_mismatch.mismatches + self.rate_mismatch.mismatches
 
     def timely(self, samples: Sequence[Sample]) -> list[Sample]:
         """The samples whose stamps can be believed, in their order: not NaN or inf, and
@@ -240,6 +243,7 @@ class PlausibilityScreen:
         for rod in sorted({r for r in rods.tolist() if 0 <= r < len(self._rods)}):
             mine = rods == rod
             stream = f"{prefix}/{self._rods[rod]}"
+            self.rate_mismatch.accept(stream, times[mine])
             use[mine] &= self.monitor.observe_many(stream, times[mine], verdict.plausible[mine])
         return list(use.tolist())
 
@@ -257,6 +261,7 @@ class PlausibilityScreen:
         x = _stack([s.rest_lengths for s in samples], self._n_actuated)
         times = np.array([s.t for s in samples], dtype=np.float64)
         verdict = self.bounds.encoders(x)
+        self.rate_mismatch.accept("encoders", times)
         if "encoder_out_of_range" in verdict.reasons:
             verdict = self._beyond_description(times, x, verdict)
         self._count_verdict(verdict)

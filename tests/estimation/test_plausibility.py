@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import tensegrity_gym  # noqa: F401  (registers the envs)
+from estimation.mismatch import RateMismatch
 from estimation.plausibility import PlausibilityBounds
 from estimation.screen import PlausibilityScreen, StreamMonitor
 from tensegrity_gym.model.description import load_robot
@@ -480,3 +481,48 @@ def test_an_estimator_keeps_the_encoders_of_a_robot_whose_motor_range_differs(
     # The InEKF comes to 1 cm at home on this robot, 2-4 cm here (its cables 10 cm
     # longer than it was built for: a slacker, floppier shape); the UKF stays under 1 cm.
     assert max(errors[-10:]) < (0.05 if estimator == "inekf" else 0.015), errors
+
+
+def test_a_stream_at_another_rate_than_described_is_said_once_whatever_the_clock(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """An IMU read every 10 ms that the description puts at 200 Hz: after 200 intervals
+    one line names the stream, its rate and the description's, once, the same with the
+    clock started a day later. The described rate with a fifth of the readings lost and
+    1 ms of jitter is no mismatch; a stream the description gives no rate is not judged."""
+    rng = np.random.default_rng(0)
+
+    def said(origin: float) -> tuple[str, ...]:
+        rates = RateMismatch({"imu/red": 200.0, "imu/green": 200.0})
+        t = origin + 0.01 * np.arange(400)
+        for k in range(0, 400, 7):
+            rates.accept("imu/red", t[k : k + 7])
+        kept = (origin + 0.005 * np.arange(800))[rng.random(800) > 0.2]
+        kept = kept + rng.uniform(-0.001, 0.001, len(kept))
+        rates.accept("imu/green", np.sort(kept))
+        rates.accept("uwb", t)
+        return rates.mismatches
+
+    with caplog.at_level("WARNING", logger="estimation.mismatch"):
+        lines = said(0.0)
+    assert lines == ("imu/red reads every 10.0 ms (100 Hz); the description's rate is 200 Hz",)
+    assert [r.getMessage() for r in caplog.records] == list(lines)
+    assert said(86_400.0) == lines
+
+
+def test_an_estimator_says_its_imu_comes_at_half_the_described_rate() -> None:
+    """The invariant EKF replayed on a run whose IMU gives every other reading: its
+    health names the mismatch, as on the clean run it names none."""
+    from agents.benchmarks.estimation import record_face_transition
+    from agents.benchmarks.streams import STREAM_FAULTS, with_fault
+    from agents.recordings.runs import replay
+    from estimation.inekf import InekfEstimator
+
+    run = record_face_transition("tensegrity_gym/ThreeBarLargeRoll-v0", 0, 25)
+    for fault, expected in (("clean", ()), ("imu_half_rate", ("imu/red reads every 10.0 ms",))):
+        est = InekfEstimator()
+        replay(with_fault(run, STREAM_FAULTS[fault], 0), est)
+        lines = est.health.mismatches
+        assert len(lines) == len(expected) and all(
+            line.startswith(e) for line, e in zip(lines, expected, strict=True)
+        ), (fault, lines)
