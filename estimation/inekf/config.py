@@ -152,8 +152,8 @@ class InekfConfig:
     the rods' vibration (tens of m/s^2 at 25 Hz and up) is not held; the variance
     added per axis is the accelerometer's recent mean square about its low-pass times
     the missing time squared. None: off (Tong et al. 2024 has no such term). On the
-    1.45 m robot's seed-0 runs with a fifth of the base rod's readings dropped at
-    random (one-off script): rolling 7.4 % -> 3.7 % drift (2 restarts -> none),
+    1.45 m robot's seed-0 runs with a fifth of the IMU readings dropped at random
+    (one-off script, at 8aef248): rolling 7.4 % -> 3.7 % drift (2 restarts -> none),
     rolling with 2 ms of time jitter as well 11.2 % -> 2.3 %, turning with both 28.6 %
     -> 7.5 %; turning with the drops alone 9.8 % -> 10.3 % (a reading lost at an
     impact while the robot flies is lost to dead reckoning). Without lost readings
