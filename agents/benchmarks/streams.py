@@ -35,8 +35,9 @@ if TYPE_CHECKING:
 
 __all__ = ["STREAM_FAULTS", "StreamFault", "bench_streams", "with_fault"]
 
-Edit = Callable[[Sample, np.random.Generator], list[Sample]]
-"""A sample as it arrives: none (lost) or one (edited); the generator for draws."""
+Edit = Callable[[Sample, np.random.Generator, dict[str, Any]], list[Sample]]
+"""A sample as it arrives: none (lost) or one (edited); the generator for draws, and a
+dict of its own for each run (what the edit has seen of it so far)."""
 
 
 @dataclass(frozen=True)
@@ -48,19 +49,19 @@ class StreamFault:
     edit: Edit
 
 
-def _kept(s: Sample, rng: np.random.Generator) -> list[Sample]:
+def _kept(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
     return [s]
 
 
 def _lost(kind: type, share: float) -> Edit:
-    def edit(s: Sample, rng: np.random.Generator) -> list[Sample]:
+    def edit(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
         return [] if isinstance(s, kind) and rng.random() < share else [s]
 
     return edit
 
 
 def _late(kinds: tuple[type, ...], seconds: float, jitter: float = 0.0) -> Edit:
-    def edit(s: Sample, rng: np.random.Generator) -> list[Sample]:
+    def edit(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
         if not isinstance(s, kinds):
             return [s]
         shift = seconds + (rng.uniform(-jitter, jitter) if jitter else 0.0)
@@ -70,11 +71,12 @@ def _late(kinds: tuple[type, ...], seconds: float, jitter: float = 0.0) -> Edit:
 
 
 def _every_other_imu() -> Edit:
-    def edit(s: Sample, rng: np.random.Generator) -> list[Sample]:
-        # an IMU at half the described rate: the readings on odd 5 ms ticks never come
-        if isinstance(s, ImuSample) and round(s.t * 1000.0) % 10:
-            return []
-        return [s]
+    def edit(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
+        # an IMU at half the described rate: every other reading of each rod never comes
+        if not isinstance(s, ImuSample):
+            return [s]
+        count = seen[f"imu/{s.rod}"] = seen.get(f"imu/{s.rod}", -1) + 1
+        return [] if count % 2 else [s]
 
     return edit
 
@@ -83,32 +85,34 @@ _GYRO_BIAS = np.array([0.02, -0.015, 0.01])  # rad/s
 _ACCEL_BIAS = np.array([0.3, -0.2, 0.25])  # m/s^2
 
 
-def _biased(s: Sample, rng: np.random.Generator) -> list[Sample]:
+def _biased(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
     if isinstance(s, ImuSample):
         return [replace(s, gyro=s.gyro + _GYRO_BIAS, accel=s.accel + _ACCEL_BIAS)]
     return [s]
 
 
-def _coarse_encoders(s: Sample, rng: np.random.Generator) -> list[Sample]:
+def _coarse_encoders(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
     if isinstance(s, EncoderSample):
         return [replace(s, rest_lengths=np.round(s.rest_lengths, 3))]
     return [s]
 
 
 def _heading(rate: float, offset: float, rod: int | None) -> Edit:
-    """AHRS headings turned about z by ``offset + rate * t`` (rad, rad/s), on ``rod``
-    (None: every rod)."""
+    """AHRS headings turned about z by ``offset + rate * t`` (rad, rad/s; t from the
+    run's first AHRS reading, whatever the clock's origin), on ``rod`` (None: every
+    rod)."""
 
-    def edit(s: Sample, rng: np.random.Generator) -> list[Sample]:
+    def edit(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
         if not isinstance(s, AhrsSample) or (rod is not None and s.rod != rod):
             return [s]
-        turn = quat_from_rotvec(np.array([0.0, 0.0, offset + rate * s.t]))
+        t0 = seen.setdefault("t0", s.t)
+        turn = quat_from_rotvec(np.array([0.0, 0.0, offset + rate * (s.t - t0)]))
         return [replace(s, quaternion=quat_multiply(turn, s.quaternion))]
 
     return edit
 
 
-def _through_a_body(s: Sample, rng: np.random.Generator) -> list[Sample]:
+def _through_a_body(s: Sample, rng: np.random.Generator, seen: dict[str, Any]) -> list[Sample]:
     if not isinstance(s, UwbRangeSample):
         return [s]
     longer = np.where(rng.random(len(s.ranges)) < 0.1, 0.3, 0.0)
@@ -151,9 +155,10 @@ def with_fault(run: RecordedRun, fault: StreamFault, seed: int) -> RecordedRun:
     """``run`` with every step's samples as ``fault`` lets them arrive (in time order),
     its draws from a generator seeded with ``seed``; ``run`` itself is left as it is."""
     rng = np.random.default_rng(seed)
+    seen: dict[str, Any] = {}
 
     def arrive(samples: list[Sample]) -> list[Sample]:
-        out = [edited for s in samples for edited in fault.edit(s, rng)]
+        out = [edited for s in samples for edited in fault.edit(s, rng, seen)]
         return sorted(out, key=lambda s: s.t)
 
     start = replace(run.start, samples=arrive(run.start.samples))

@@ -293,8 +293,10 @@ class InekfEstimator:
     def _settle(self, t_ns: int, solve: bool) -> bool:
         """The readings stamped ``t_ns`` are all in: the contacts corrected
         (:meth:`_kinematics`), then, if ``solve``, the shape solved from the encoders on
-        the sensed contacts of its own stamp and the corrected tilt. Solved as each
-        encoder reading came, before the contact reading of its stamp, the shape took
+        the sensed contacts of its own stamp and the corrected tilt (solved before the
+        correction, which then used the new shape, one of the cross-world bench's
+        own-world runs restarted 4 times; none this way). Solved as each encoder
+        reading came, before the contact reading of its stamp, the shape took
         the endcaps of 10 ms before for those on the ground (the 1.45 m robot's
         cross-world runs: 2.1-2.2 cm shape RMSE on each world, 1.2-1.4 cm since).
         Without contact sensors the contacts come from the shape, which is solved as
@@ -333,12 +335,16 @@ class InekfEstimator:
     def _lost_variance(self, dt: float) -> float:
         """(m/s)^2 per axis the velocity's error grows by over ``dt`` s since the last
         base-rod reading, beyond the IMU's noise: 0 unless readings were lost
-        (:attr:`InekfConfig.imu_gap_share`), else the accelerometer's recent mean square
-        about its low-pass times the missing time squared."""
+        (:attr:`InekfConfig.imu_gap_share`; the period is the description's, so an IMU
+        slower than described counts every interval, and 2 ms of jitter at 200 Hz a
+        few), else the accelerometer's recent spread (the mean square of each reading
+        off a low-pass that includes it) times the missing time squared, that time at
+        most the health's ``max_prediction_time`` (a longer stall is the watchdog's)."""
         share = self.config.imu_gap_share
         missing = dt - self._imu_period
         if share is None or missing <= share * self._imu_period:
             return 0.0
+        missing = min(missing, self.config.health.max_prediction_time)
         return self._accel_spread * missing * missing
 
     def _propagate(self, dt: float) -> None:
