@@ -326,6 +326,7 @@ def test_a_goal_counts_as_reached_in_truth_only() -> None:
     assert not goal_reached(true[:1], np.zeros((0, 2)), 1.0)
 
 
+@pytest.mark.slow  # 35-42 s on a fresh clone; the default run is at its 15 minutes
 def test_report_compares_policies_under_conditions(tiny_run: Path, tmp_path: Path) -> None:
     report = write_report(
         [tiny_run], tmp_path / "report", episodes=1, conditions=("oracle", "ukf_4_anchors")

@@ -120,6 +120,7 @@ def test_the_example_file_reads(superball: RobotDescription) -> None:
     assert set(np.unique(rows.module_j)) <= set(range(12, 20))
 
 
+@pytest.mark.slow  # 32-35 s on a fresh clone; the default run is at its 15 minutes
 def test_calibrate_a_ranges_file_from_the_command_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], caplog: pytest.LogCaptureFixture
 ) -> None:
