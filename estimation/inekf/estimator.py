@@ -157,7 +157,6 @@ class InekfEstimator:
         self._clipped = self._gyro_clipped = False
         self._imu_period = 1.0 / float(d.sensors.imu.rate)
         self._accel_spread = 0.0  # (m/s^2)^2: the base accelerometer's mean square off its low-pass
-        self._gap_variance = 0.0  # (m/s)^2: what lost readings add to the next propagation
         self._rest = np.asarray(command, dtype=np.float64).copy()
         self._cables: NDArray[np.float64] | None = None
         self._sensed: NDArray[np.bool_] | None = None
@@ -281,8 +280,7 @@ class InekfEstimator:
                 self._t_ns = max(self._t_ns, t_ns)
                 if isinstance(s, EncoderSample) and self._shape_due(t_ns):
                     if self._sensed is None:  # the contacts come from the shape: solve now
-                        self._solve_shape(self._up())
-                        self._shape_ns = t_ns
+                        self._solve_at(t_ns)
                     else:
                         solve = True
                 pending = t_ns
@@ -303,18 +301,21 @@ class InekfEstimator:
         its encoder reading comes (:meth:`_consume`)."""
         corrected = self._kinematics()
         if solve:
-            self._solve_shape(self._up())
-            self._shape_ns = t_ns
+            self._solve_at(t_ns)
         return corrected
+
+    def _solve_at(self, t_ns: int) -> None:
+        """The shape solved from the encoder reading stamped ``t_ns``, the next solve
+        counted from it."""
+        self._solve_shape(self._up())
+        self._shape_ns = t_ns
 
     def _imu(self, s: ImuSample, t_ns: int, accel: NDArray[np.float64] | None = None) -> None:
         """Propagate over the time since the last reading with that reading held;
         ``accel``: the reading's as a (3,) float64 array, where the caller has it."""
         if self._imu_ns is not None and t_ns > self._imu_ns:
             dt = ns_to_seconds(t_ns - self._imu_ns)
-            self._gap_variance = self._lost_variance(dt)
-            self._propagate(dt)
-            self._gap_variance = 0.0
+            self._propagate(dt, self._lost_variance(dt))
         if self._imu_ns is None or t_ns >= self._imu_ns:
             self._imu_ns = t_ns
             self._gyro = np.ascontiguousarray(s.gyro, dtype=np.float64)
@@ -347,13 +348,13 @@ class InekfEstimator:
         missing = min(missing, self.config.health.max_prediction_time)
         return self._accel_spread * missing * missing
 
-    def _propagate(self, dt: float) -> None:
+    def _propagate(self, dt: float, lost_variance: float = 0.0) -> None:
         """Propagate over ``dt`` s with the held reading, in one compiled call
         (:meth:`RightInvariantEkf.propagate_reading`): the contacts' slip density by the
         angular rate, as the endcaps slide while the robot tips over; the velocity made
         uncertain where the reading clipped, by the full scale over the step (the
         velocity change it missed) and where readings were lost before this one
-        (:meth:`_lost_variance`); the base rod's endcaps in contact rolled by its
+        (``lost_variance``, :meth:`_lost_variance`); the base rod's endcaps in contact rolled by its
         spin (gyro z): a sphere of radius r turning by theta about the rod moves its
         centre by theta x (r up). The rods roll about their own axes as the robot tips
         over, and an endcap held fixed made the estimate lag the robot's travel
@@ -368,7 +369,7 @@ class InekfEstimator:
                 [self._base_endcap_radius if n in self._base_nodes else 0.0 for n in nodes]
             ) if self.config.rolling_endcaps else np.zeros(len(nodes))  # fmt: skip
         variance = (self._full_scale * dt) ** 2 if self._clipped else 0.0
-        variance += self._gap_variance
+        variance += lost_variance
         turn = (self._gyro_full_scale * dt) ** 2 if self._gyro_clipped else 0.0
         f.propagate_reading(
             self._gyro, self._accel, dt, self._slip_law, variance, self._roll_radii, turn
