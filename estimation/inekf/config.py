@@ -54,6 +54,7 @@ PAPER_LENGTHS = {
     "kinematics_std": 0.08,
     "slip_per_rate": 0.05,
     "slip_max": 0.05,
+    "floor_std": 0.1,
 }
 """The defaults of the :class:`InekfConfig` fields that scale with the robot's size, on
 Tong et al. 2024's 1.45 m rods (m, m, m/s/sqrt(Hz) per rad/s, m/s/sqrt(Hz))."""
@@ -160,6 +161,22 @@ class InekfConfig:
     nothing changes (3.8 % and 1.2 % on the same runs)."""
     max_speed: float = 20.0
     """m/s: an estimated speed beyond this is a divergence (the filter restarts)."""
+    floor_correction: bool = True
+    """Each endcap in contact corrects the filter with its height at every contact
+    correction: it touches the floor the filter started on (z = 0), its radius above
+    it, within :attr:`floor_std` (:meth:`RightInvariantEkf.correct_heights`; not gated:
+    a filter whose height has drifted off is what it is for). Not in Tong et al. 2024,
+    where the height is unobservable and only the ground bound (:attr:`ground_reach`)
+    restarts a filter that has drifted off. On the cross-world bench's 1.45 m runs
+    (one-off replays of the 18 runs at e580866), mean drift own / MuJoCo / description
+    error 2.68 / 6.59 / 6.34 % -> 2.81 / 6.37 / 5.18 %, restarts 0 / 0.8 / 0.7 a run
+    -> none; gated at 0.9999 (with the rotation's row and 0.05 m: a filter off by more
+    refuses it, and restarts) 2.64 / 13.7 / 21.9 %."""
+    floor_std: float | None = None
+    """m: standard deviation of a contact's height above that floor: the floor's
+    unevenness the filter allows for (None: 0.1 m on the 1.45 m rods, in proportion
+    to the robot's). On the runs above 0.05 m: 2.93 / 6.97 / 4.87 %; 0.2 m: 2.88 /
+    5.71 / 4.77 % with rods 13 degrees off on MuJoCo; 0.025 m: 2.89 / 6.71 / 8.79 %."""
     ground_reach: float = 0.5
     """Rod lengths (the base rod's): the endcaps in contact (else the lowest endcap)
     estimated further above or below the floor the filter started on (z = 0, less
@@ -188,6 +205,7 @@ class InekfConfig:
             kinematics_std=length("kinematics_std"),
             slip_per_rate=length("slip_per_rate"),
             slip_max=length("slip_max"),
+            floor_std=length("floor_std"),
         )
 
     def __post_init__(self) -> None:
@@ -198,7 +216,7 @@ class InekfConfig:
             )
         if isinstance(self.base_rod, bool) or not isinstance(self.base_rod, int):
             raise ValueError(f"InekfConfig.base_rod must be a rod index, got {self.base_rod!r}")
-        for name in ("contact_std", "kinematics_std"):
+        for name in ("contact_std", "kinematics_std", "floor_std"):
             value = getattr(self, name)
             if value is not None and not (
                 isinstance(value, (int, float)) and math.isfinite(value) and value > 0
@@ -217,7 +235,7 @@ class InekfConfig:
             k = getattr(self, name)
             if k is not None and not (isinstance(k, (int, float)) and math.isfinite(k) and k >= 0):
                 raise ValueError(f"InekfConfig.{name} must be a number >= 0 or None, got {k!r}")
-        for name in ("reanchor_slipped", "rolling_endcaps"):
+        for name in ("reanchor_slipped", "rolling_endcaps", "floor_correction"):
             flag = getattr(self, name)
             if not isinstance(flag, bool):
                 raise ValueError(f"InekfConfig.{name} must be True or False, got {flag!r}")

@@ -471,12 +471,20 @@ class InekfEstimator:
             for node in self._slipped(refused):
                 f.marginalise(node)
                 f.augment(node, self.shape[node], cov_touch)
+        if c.floor_correction:
+            self._correct_heights()
         accepted = len(refused) < len(nodes)
         if accepted:
             self._refused_since_ns = None
         elif self._refused_since_ns is None:
             self._refused_since_ns = self._t_ns
         return accepted
+
+    def _correct_heights(self) -> None:
+        """The contacts' heights corrected toward the floor (``floor_correction``)."""
+        f, c = self.filter, self.config
+        assert f is not None and c.floor_std is not None
+        f.correct_heights(self.description.node_radii[list(f.contact_nodes)], c.floor_std**2)
 
     def _slipped(self, refused: list[int]) -> list[int]:
         """The ``refused`` contacts whose endcap, by the kinematics, lies off its contact

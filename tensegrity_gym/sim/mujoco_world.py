@@ -128,6 +128,10 @@ class MujocoWorld:
         self.rest_lengths: list[float] = description.rest_lengths.tolist()
         """The rest lengths (m), (n_cables,), as of the last period's end."""
         self.targets: list[float] = [self.rest_lengths[k] for k in description.actuated]
+        self.trace: list[tuple[NDArray[np.float64], NDArray[np.float64], int]] | None = None
+        """None, or a list to which :meth:`advance` appends each ``mj_step`` call: the
+        controls (nu,), the motors' rest lengths (na,) it started from and its steps;
+        :meth:`replay` steps them again (the physics of the traced periods alone)."""
         self._build()
 
     # ------------------------------------------------------------------ construction
@@ -310,6 +314,8 @@ class MujocoWorld:
                                 self.time_step, rate, arrive)  # fmt: skip
             stop = min(step + hold, due)
             self.data.ctrl[self._actuated] = rate
+            if self.trace is not None:
+                self.trace.append((self.data.ctrl.copy(), self.data.act.copy(), stop - step))
             mujoco.mj_step(self.model, self.data, nstep=stop - step)
             self.time_ns += (stop - step) * self._time_step_ns
             if stop - step == hold:  # motors that took their last step sit on the target
@@ -345,6 +351,16 @@ class MujocoWorld:
         """``mj_step`` alone at the present controls: the ceiling the benchmark compares
         the env with (the cables pull: in MuJoCo they are part of the model)."""
         mujoco.mj_step(self.model, self.data, nstep=n_steps)
+
+    def replay(self, trace: Sequence[tuple[NDArray[np.float64], NDArray[np.float64], int]]) -> None:
+        """``mj_step`` alone through a :attr:`trace`'s calls, each from its controls and
+        motors: from the state the trace began at, the same motion, without the env
+        around it (the benchmark's ceiling for the env's own periods)."""
+        model, data = self.model, self.data
+        for ctrl, act, n_steps in trace:
+            data.ctrl[:] = ctrl
+            data.act[:] = act
+            mujoco.mj_step(model, data, nstep=n_steps)
 
     def save_state(self) -> MujocoCheckpoint:
         """An in-memory checkpoint of the bodies, motors and clock."""

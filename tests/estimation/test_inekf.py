@@ -457,9 +457,10 @@ def test_a_lost_imu_reading_makes_the_velocity_uncertain(share: float | None) ->
 @pytest.mark.slow  # 10 s; the default run is near its 15 minutes
 def test_lost_imu_readings_cost_less_drift_when_they_make_the_velocity_uncertain() -> None:
     """A fifth of the base rod's readings dropped from a recorded rolling run: with the
-    lost readings' variance the drift is less than without it, by at least a fifth
-    (at 75312e0: 7.45 % against 9.85 %, clean 2.68 %; before it, with the shape solved
-    on stale contacts, 6.3 % against 12.2 %, clean 3.8 %)."""
+    lost readings' variance the drift is less than without it, by at least a fifth,
+    and within 2 points of the clean run's (with the floor correction: 1.07 % against
+    3.0 %, clean 2.7 %; at 75312e0, before it, 7.45 % against 9.85 %, clean 2.68 %;
+    before that, with the shape solved on stale contacts, 6.3 % against 12.2 %)."""
     from agents.benchmarks.estimation import record_face_transition
     from agents.recordings.runs import replay
 
@@ -481,7 +482,7 @@ def test_lost_imu_readings_cost_less_drift_when_they_make_the_velocity_uncertain
 
     clean = drift(run, InekfConfig())
     kept, off = drift(lossy, InekfConfig()), drift(lossy, InekfConfig(imu_gap_share=None))
-    assert clean < kept < 0.8 * off, (clean, kept, off)
+    assert kept < min(0.8 * off, clean + 2.0), (clean, kept, off)
 
 
 def test_the_contacts_slip_more_while_the_robot_turns() -> None:
@@ -632,6 +633,31 @@ def test_an_estimate_off_the_ground_restarts_on_the_floor() -> None:
     truth = backend.ground_truth()
     assert truth is not None
     assert abs(float(estimate.com[2] - truth.com[2])) < 0.05
+
+
+@pytest.mark.parametrize("floor", [True, False])
+def test_a_height_drifted_off_within_the_ground_bound_comes_back_to_the_floor(
+    floor: bool,
+) -> None:
+    """Contacts and robot 0.4 rod lengths up (within the ground bound of 0.5, so no
+    restart): the floor correction brings the endcaps in contact back to the floor
+    to a tenth within 3 s (a sure filter moves by little at each correction); without it the
+    height is unobservable and stays off."""
+    est, backend, hold = _resting(InekfConfig(floor_correction=floor), seed=2)
+    d = backend.description
+    f = est.filter
+    assert f is not None and f.contact_nodes
+    lift = 0.4 * float(d.rods[0].length)
+    f._T[2, 4:] += lift
+    for _ in range(30):
+        est.update(list(backend.step(hold).samples), hold)
+    assert not est.health.divergences
+    off = abs(est._height_off_ground())
+    print(f"height off the floor after 3 s: {off:.3f} m")
+    if floor:
+        assert off < 0.1 * lift, off  # 0.039 m of 0.58 when written
+    else:
+        assert off > 0.75 * lift, off
 
 
 def test_the_heading_a_dead_reckoner_loses_is_in_info() -> None:

@@ -394,13 +394,18 @@ def test_bench_reports_every_step() -> None:
         assert 0.0 < out[f"{step}_us"] <= out[f"{step}_mean_us"] * 20
 
 
-def test_a_contact_moves_by_its_shift_alone_and_velocity_variance_adds() -> None:
-    rng = np.random.default_rng(4)
+def _two_contacts(rng: np.random.Generator) -> RightInvariantEkf:
+    """A filter at a random pose, velocity and position, nodes 3 and 1 in contact."""
     f = _filter()
     f.reset(so3_exp(rng.normal(size=3)), rng.normal(size=3), rng.normal(size=3),
             np.zeros(3), np.zeros(3), P0)  # fmt: skip
     for node, foot in zip((3, 1), FEET[:2], strict=True):
         f.augment(node, foot, KIN)
+    return f
+
+
+def test_a_contact_moves_by_its_shift_alone_and_velocity_variance_adds() -> None:
+    f = _two_contacts(np.random.default_rng(4))
     X, P = f.state_matrix, f.covariance
     f.move_contact(1, [0.05, -0.02, 0.0])
     moved = X.copy()
@@ -414,6 +419,34 @@ def test_a_contact_moves_by_its_shift_alone_and_velocity_variance_adds() -> None
         f.move_contact(4, np.zeros(3))
     with pytest.raises(ValueError, match="variance must be a finite number >= 0"):
         f.add_velocity_variance(float("nan"))
+
+
+def test_a_height_correction_is_the_scalar_joseph_update_of_the_contacts_z() -> None:
+    """Each contact's height corrects by the dense Kalman update with the row e_z at its
+    z (the rotation's lever left out, on purpose): the covariance is the Joseph form,
+    the contact moves toward the measured height, and so does what is correlated with
+    it; a variance that is not a number > 0 is refused."""
+    f = _two_contacts(np.random.default_rng(6))
+    var = 0.05**2
+    P, z_before = f.covariance, f.contact_positions[:, 2].copy()
+    heights = z_before + np.array([0.2, -0.1])  # the floor, off each estimate
+    f.correct_heights(heights.copy(), var)
+    expected = P  # dense, as a textbook writes it: one contact's row after the other
+    for row in (11, 14):
+        h = np.zeros(P.shape[0])
+        h[row] = 1.0
+        k = expected @ h / (h @ expected @ h + var)
+        a = np.eye(P.shape[0]) - np.outer(k, h)
+        expected = a @ expected @ a.T + var * np.outer(k, k)
+    np.testing.assert_allclose(f.covariance, expected, atol=1e-15)
+    _assert_spd(f.covariance)
+    moved = f.contact_positions[:, 2] - z_before
+    assert 0.0 < moved[0] < 0.2 and -0.1 < moved[1] < 0.0  # toward the floor, not past it
+    assert np.all(np.diag(f.covariance)[[11, 14]] < np.diag(P)[[11, 14]])
+    with pytest.raises(ValueError, match="variance must be a finite number > 0"):
+        f.correct_heights(heights, 0.0)
+    with pytest.raises(ValueError, match=r"heights must have shape \(2,\)"):
+        f.correct_heights(heights[:1], var)
 
 
 def test_the_contacts_slip_density_can_change_between_propagations() -> None:

@@ -251,3 +251,26 @@ def test_damping_and_the_minimum_tension_pull_as_the_reference() -> None:
     np.testing.assert_allclose(forces[:, :3], wrench[:, :3], rtol=1e-6, atol=1e-6)
     body_torque = np.einsum("rji,rj->ri", quat_to_matrix(q), wrench[:, 3:])
     np.testing.assert_allclose(forces[:, 3:], body_torque, rtol=1e-6, atol=1e-6)
+
+
+def test_a_traced_period_replays_to_the_same_state_bit_for_bit() -> None:
+    """The benchmark's ceiling is the env's own physics: the ``mj_step`` calls a period
+    made, replayed from the state it began at, end where the period ended, and the
+    trace is off unless asked for."""
+    d = load_robot("three_bar")
+    backend = SimBackend(d, engine="mujoco")
+    backend.reset(np.random.default_rng(0))
+    world = backend.world
+    assert isinstance(world, MujocoWorld) and world.trace is None
+    start, world.trace = world.save_state(), []
+    lo, hi, _ = d.motor_limits
+    for k in range(3):
+        backend.step(np.where(np.arange(len(lo)) % 2 == k % 2, lo, hi))
+    trace, world.trace = world.trace, None
+    period = round(backend.control_period / backend.time_step)
+    assert len(trace) > 3 and sum(n for _, _, n in trace) == 3 * period
+    end = world.data.qpos.copy()
+    world.restore_state(start)
+    assert np.abs(world.data.qpos - end).max() > 1e-3  # the motors moved the robot
+    world.replay(trace)
+    np.testing.assert_array_equal(world.data.qpos, end)
