@@ -44,27 +44,34 @@ def _bare_ms_per_period(env: Any, periods: int) -> float:
 
 def replayed_ms_per_step(env: Any, actions: Any, seed: int) -> float:
     """Process-time ms per control period of MuJoCo's bare ``mj_step`` through the
-    env's own periods: the env stepped over ``actions`` from ``reset(seed)`` (untimed,
-    to the episode's end at most) with its world's :attr:`~MujocoWorld.trace` on, then
-    the traced calls replayed from the state they began at. The ceiling of the same
-    motion: the robot rolling and the motors moving cost ``mj_step`` more than a robot
-    at rest."""
+    env's own periods: the env stepped over ``actions`` from ``reset(seed)`` as
+    :func:`~agents.benchmarks.env.ms_per_step` steps it (the first 10 periods not
+    counted), untimed, to the episode's end at most, with its world's
+    :attr:`~tensegrity_gym.sim.mujoco_world.MujocoWorld.trace` on; then the traced calls
+    replayed from the state they began at, timed. The env is left where it ended."""
+    if len(actions) <= 10:
+        raise ValueError(f"replayed_ms_per_step needs more than 10 actions, got {len(actions)}")
     world = env.unwrapped.backend.world
     env.reset(seed=seed)
+    for a in actions[:10]:
+        env.step(a)
     start, world.trace = world.save_state(), []
     periods = 0
     try:
-        for a in actions:
+        for a in actions[10:]:
             periods += 1
             if any(env.step(a)[2:4]):
                 break
         trace = world.trace
     finally:
         world.trace = None
+    end = world.save_state()
     world.restore_state(start)
     t = time.process_time()
     world.replay(trace)
-    return 1e3 * (time.process_time() - t) / periods
+    seconds = time.process_time() - t
+    world.restore_state(end)
+    return 1e3 * seconds / periods
 
 
 def bench_engines(

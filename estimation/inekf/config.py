@@ -57,7 +57,8 @@ PAPER_LENGTHS = {
     "floor_std": 0.1,
 }
 """The defaults of the :class:`InekfConfig` fields that scale with the robot's size, on
-Tong et al. 2024's 1.45 m rods (m, m, m/s/sqrt(Hz) per rad/s, m/s/sqrt(Hz))."""
+Tong et al. 2024's 1.45 m rods (m, m, m/s/sqrt(Hz) per rad/s, m/s/sqrt(Hz), m): the
+paper's values but ``floor_std``, which is this project's (the paper has no floor)."""
 
 CONTACT_SOURCES = ("auto", "sensors", "shape")
 """Where contacts come from: the contact sensors (``"sensors"``), the shape and gravity
@@ -162,29 +163,35 @@ class InekfConfig:
     max_speed: float = 20.0
     """m/s: an estimated speed beyond this is a divergence (the filter restarts)."""
     floor_correction: bool = True
-    """Each endcap in contact corrects the filter with its height at every contact
-    correction: it touches the floor the filter started on (z = 0), its radius above
-    it, within :attr:`floor_std` (:meth:`RightInvariantEkf.correct_heights`; not gated:
-    a filter whose height has drifted off is what it is for). Not in Tong et al. 2024,
-    where the height is unobservable and only the ground bound (:attr:`ground_reach`)
-    restarts a filter that has drifted off. On the cross-world bench's 1.45 m runs
-    (one-off replays of the 18 runs at e580866), mean drift own / MuJoCo / description
-    error 2.68 / 6.59 / 6.34 % -> 2.81 / 6.37 / 5.18 %, restarts 0 / 0.8 / 0.7 a run
-    -> none; gated at 0.9999 (with the rotation's row and 0.05 m: a filter off by more
-    refuses it, and restarts) 2.64 / 13.7 / 21.9 %."""
+    """Each endcap that touches down (or touches down again, :attr:`reanchor_slipped`)
+    corrects the filter once with its height: it stands on the floor the filter started
+    on (z = 0), its radius above it, within :attr:`floor_std`
+    (:meth:`RightInvariantEkf.correct_heights`; not gated: a filter whose height has
+    drifted off is what it is for). Not in Tong et al. 2024, where the height is
+    unobservable and only the ground bound (:attr:`ground_reach`) restarts a filter
+    that has drifted off. On the cross-world bench's 1.45 m runs (replays of its 18
+    runs), mean drift own / MuJoCo / description error 2.68 / 6.59 / 6.34 % -> 2.54 /
+    5.29 / 5.26 %, restarts 0 / 0.8 / 0.7 a run -> none. Corrected at every contact
+    stamp instead (100 Hz: a contact held for a second told the filter its height a
+    hundred times over, and it grew three times surer of it than without), 2.81 / 6.37
+    / 5.18 %; that, gated at 0.9999 and with the rotation's row, 0.05 m (a filter off
+    by more refuses it, and restarts): 2.64 / 13.7 / 21.9 %."""
     floor_std: float | None = None
-    """m: standard deviation of a contact's height above that floor: the floor's
-    unevenness the filter allows for (None: 0.1 m on the 1.45 m rods, in proportion
-    to the robot's). On the runs above 0.05 m: 2.93 / 6.97 / 4.87 %; 0.2 m: 2.88 /
-    5.71 / 4.77 % with rods 13 degrees off on MuJoCo; 0.025 m: 2.89 / 6.71 / 8.79 %."""
+    """m: standard deviation of a contact's height above that floor at touch-down: the
+    floor's unevenness the filter allows for (None: 0.1 m on the 1.45 m rods, in
+    proportion to the robot's). On the runs above 0.05 m: 2.63 / 5.84 / 5.14 %; 0.2 m:
+    2.63 / 7.57 / 5.23 % (0.5 restarts a run on MuJoCo)."""
     ground_reach: float = 0.5
     """Rod lengths (the base rod's): the endcaps in contact (else the lowest endcap)
     estimated further above or below the floor the filter started on (z = 0, less
     their radii) is a divergence: a robot rolling on the ground cannot float or sink.
     Twice the deepest of the terrain presets' troughs (the valley's, a quarter of a rod
-    length): the filter knows no map. On a sloping floor the ground rises along the
-    travel, so a robot rolling far uphill or downhill (on a slope of s, 0.5 / s rod
-    lengths: 14 at 2 degrees) is taken for one off the ground and restarts."""
+    length): the filter knows no map. With the floor correction a filter whose height
+    drifts is pulled back before it gets this far; what is left for the bound is a
+    robot coasting through the air on its IMU, no endcap in contact. On a sloping floor
+    the ground rises along the travel, and the floor correction holds the estimate to
+    the level floor it started on: a robot rolling far uphill or downhill (on a slope
+    of s, 0.5 / s rod lengths: 14 at 2 degrees) is estimated too low or too high."""
     max_refused_time: float = 0.5
     """s: the gate refusing every contact correction for longer is a divergence (the
     filter restarts): one that has drifted off would otherwise refuse them ever after."""
@@ -192,7 +199,8 @@ class InekfConfig:
 
     def for_robot(self, description: RobotDescription) -> InekfConfig:
         """This config with every length left None set in proportion to the base rod:
-        Tong et al. 2024's value on its 1.45 m rods times the rod's length over 1.45 m."""
+        its value on Tong et al. 2024's 1.45 m rods (:data:`PAPER_LENGTHS`) times the
+        rod's length over 1.45 m."""
         scale = float(description.rods[self.base_rod].length) / PAPER_ROD_LENGTH
 
         def length(name: str) -> float:

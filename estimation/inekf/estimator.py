@@ -11,9 +11,10 @@ touching down are added to the state (eq. 9), those lifting off are marginalised
 (eq. 10), and every endcap in contact corrects the state by forward kinematics
 (eq. 11-14). The estimate's nodes are the pose applied to the shape.
 
-It knows its position only relative to where it started (dead reckoning: the frame of
-:mod:`estimation.inekf.initialise`), and its heading only through the magnetometer at
-reset: both drift.
+It knows its position along the ground only relative to where it started (dead
+reckoning: the frame of :mod:`estimation.inekf.initialise`), and its heading only
+through the magnetometer at reset: both drift. Its height is held by the endcaps in
+contact, on the floor it started on (``InekfConfig.floor_correction``).
 """
 
 from __future__ import annotations
@@ -445,12 +446,14 @@ class InekfEstimator:
         cov_touch = self._cov_touch
         # The filter's contacts are those of in_contact (both start empty and change
         # together), so only a change of the contacts adds or drops one.
+        new: list[int] = []  # the contacts that touched down at this stamp
         if now.tobytes() != self.in_contact.tobytes():
             for node in [n for n in f.contact_nodes if not now[n]]:
                 f.marginalise(node)
             for touched in np.flatnonzero(now & ~self.in_contact).tolist():
                 if touched not in f.contact_nodes:
                     f.augment(touched, self.shape[touched], cov_touch)
+                    new.append(touched)
         self.in_contact = now
         nodes = f.contact_nodes
         if not nodes:
@@ -471,8 +474,9 @@ class InekfEstimator:
             for node in self._slipped(refused):
                 f.marginalise(node)
                 f.augment(node, self.shape[node], cov_touch)
+                new.append(node)
         if c.floor_correction:
-            self._correct_heights()
+            self._correct_heights(new)
         accepted = len(refused) < len(nodes)
         if accepted:
             self._refused_since_ns = None
@@ -480,11 +484,15 @@ class InekfEstimator:
             self._refused_since_ns = self._t_ns
         return accepted
 
-    def _correct_heights(self) -> None:
-        """The contacts' heights corrected toward the floor (``floor_correction``)."""
+    def _correct_heights(self, nodes: list[int]) -> None:
+        """The heights of the contacts ``nodes``, those that touched down at this stamp,
+        corrected toward the floor (``floor_correction``): once each, since the floor
+        under a contact that stays is the same floor (corrected at every stamp, 100 Hz,
+        a contact held for a second told the filter its height a hundred times over)."""
         f, c = self.filter, self.config
         assert f is not None and c.floor_std is not None
-        f.correct_heights(self.description.node_radii[list(f.contact_nodes)], c.floor_std**2)
+        if nodes:
+            f.correct_heights(nodes, self.description.node_radii[nodes], c.floor_std**2)
 
     def _slipped(self, refused: list[int]) -> list[int]:
         """The ``refused`` contacts whose endcap, by the kinematics, lies off its contact

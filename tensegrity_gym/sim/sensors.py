@@ -53,6 +53,8 @@ __all__ = [
 ]
 
 SPEED_OF_LIGHT = 299_792_458.0
+_WXYZ_TO_XYZW = np.array([1, 2, 3, 0])
+"""imufusion's quaternion order (w, x, y, z) to the project's (x, y, z, w)."""
 
 
 class SensorSchedule:
@@ -174,20 +176,16 @@ class ImuModel:
         accel, gyro, mag = self._measure(q, accel_world, w, noise)
         gyro_deg = np.degrees(gyro)
         accel_g = accel / 9.81
-        imu: list[ImuSample] = []
-        ahrs_out: list[AhrsSample] = []
+        wxyz = np.empty((len(snaps), self.n_rods, 4))
         for k in range(len(snaps)):
-            tk = float(t[k])
-            for r, (rod, ahrs) in enumerate(zip(self.rods, self.ahrs, strict=True)):
-                imu.append(ImuSample(tk, rod, accel[k, r], gyro[k, r], mag[k, r]))
+            for r, ahrs in enumerate(self.ahrs):
                 ahrs.update(gyro_deg[k, r], accel_g[k, r], mag[k, r])
-                wxyz = ahrs.get_quaternion()
-                ahrs_out.append(
-                    AhrsSample(
-                        tk, rod, np.array([wxyz[1], wxyz[2], wxyz[3], wxyz[0]], dtype=np.float64)
-                    )
-                )
-        return imu, ahrs_out
+                wxyz[k, r] = ahrs.get_quaternion()
+        xyzw = wxyz[..., _WXYZ_TO_XYZW]
+        times = t.tolist()
+        at = [(k, r, rod) for k in range(len(snaps)) for r, rod in enumerate(self.rods)]
+        imu = [ImuSample(times[k], rod, accel[k, r], gyro[k, r], mag[k, r]) for k, r, rod in at]
+        return imu, [AhrsSample(times[k], rod, xyzw[k, r]) for k, r, rod in at]
 
 
 class EncoderModel:

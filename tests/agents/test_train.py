@@ -225,6 +225,7 @@ def test_a_policy_of_moves_trains_and_evaluates_through_the_gait(tmp_path: Path)
     assert np.isfinite(episode.progress) and episode.rolls > 0
 
 
+@pytest.mark.slow  # 15 s; the default run is near its 15 minutes
 def test_mismatch_conditions_evaluate_in_randomised_worlds(tiny_run: Path) -> None:
     """``oracle_strong``: the same policy and seed in a world drawn from the strong
     randomisation moves the robot otherwise than in the nominal world."""
@@ -525,6 +526,7 @@ def test_the_demo_over_two_seeds_writes_each_report_and_the_summary(tmp_path: Pa
     assert "- seed 1, **trained on ukf** under `ukf`: " in text and "rolls per episode" in text
 
 
+@pytest.mark.slow  # 21 s; the default run is near its 15 minutes
 def test_a_policy_trained_in_randomised_worlds_is_named_so(tmp_path: Path) -> None:
     out = tmp_path / "run"
     train(

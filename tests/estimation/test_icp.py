@@ -137,6 +137,7 @@ def test_icp_is_a_registered_estimator_name() -> None:
         IcpParams(max_iterations=0)
 
 
+@pytest.mark.slow  # 26 s; the default run is near its 15 minutes
 def test_the_icp_bench_scores_every_variant_of_table_1() -> None:
     from agents.benchmarks.icp import VARIANTS, bench_icp
 

@@ -430,7 +430,14 @@ def test_a_height_correction_is_the_scalar_joseph_update_of_the_contacts_z() -> 
     var = 0.05**2
     P, z_before = f.covariance, f.contact_positions[:, 2].copy()
     heights = z_before + np.array([0.2, -0.1])  # the floor, off each estimate
-    f.correct_heights(heights.copy(), var)
+    # the mean: X <- exp(K z) X, b <- b + K z, for the first contact (node 3) alone
+    one = copy.deepcopy(f)
+    one.correct_heights([3], heights[:1].copy(), var)
+    delta = P[:, 11] / (P[11, 11] + var) * 0.2
+    np.testing.assert_allclose(one.state_matrix, sek3_exp(delta[:-6]) @ f.state_matrix,
+                               atol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(np.r_[one.gyro_bias, one.accel_bias], delta[-6:], atol=1e-15)
+    f.correct_heights([3, 1], heights.copy(), var)
     expected = P  # dense, as a textbook writes it: one contact's row after the other
     for row in (11, 14):
         h = np.zeros(P.shape[0])
@@ -444,9 +451,11 @@ def test_a_height_correction_is_the_scalar_joseph_update_of_the_contacts_z() -> 
     assert 0.0 < moved[0] < 0.2 and -0.1 < moved[1] < 0.0  # toward the floor, not past it
     assert np.all(np.diag(f.covariance)[[11, 14]] < np.diag(P)[[11, 14]])
     with pytest.raises(ValueError, match="variance must be a finite number > 0"):
-        f.correct_heights(heights, 0.0)
+        f.correct_heights([3, 1], heights, 0.0)
     with pytest.raises(ValueError, match=r"heights must have shape \(2,\)"):
-        f.correct_heights(heights[:1], var)
+        f.correct_heights([3, 1], heights[:1], var)
+    with pytest.raises(ValueError, match="node 4 is not in contact"):
+        f.correct_heights([4], heights[:1], var)
 
 
 def test_the_contacts_slip_density_can_change_between_propagations() -> None:

@@ -750,6 +750,7 @@ def test_a_robot_node_written_with_zenoh_and_rosbags_alone_is_driven(
     assert np.linalg.norm(info["com_estimate"] - nominal) < 0.05
 
 
+@pytest.mark.slow  # 16 s; the default run is near its 15 minutes
 def test_the_icp_tracker_runs_on_the_emulated_camera() -> None:
     """RGB-D frames travel the wire too: the ICP tracker runs unchanged on them."""
     with EmulatorProcess("three_bar", options=["--camera"]) as process:

@@ -274,3 +274,4 @@ def test_a_traced_period_replays_to_the_same_state_bit_for_bit() -> None:
     assert np.abs(world.data.qpos - end).max() > 1e-3  # the motors moved the robot
     world.replay(trace)
     np.testing.assert_array_equal(world.data.qpos, end)
+    backend.close()

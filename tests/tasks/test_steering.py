@@ -207,6 +207,7 @@ def _progress(
 HEADINGS = (0.0, 0.5 * np.pi, np.pi, -0.5 * np.pi)
 
 
+@pytest.mark.slow  # 22 s; the default run is near its 15 minutes
 def test_the_steering_gait_rolls_toward_every_heading() -> None:
     steer = [_progress("roll", STEER_GAIT, 0, 210, goal_heading=h) for h in HEADINGS]
     forward = [_progress("roll", "forward", 0, 210, goal_heading=h) for h in HEADINGS]
