@@ -17,7 +17,7 @@ import numpy as np
 import tensegrity_gym  # noqa: F401  (registers the envs)
 from agents.benchmarks.env import ms_per_step
 
-__all__ = ["ENGINE_TARGETS", "bench_engines", "bench_vector", "replayed_ms_per_step"]
+__all__ = ["ENGINE_TARGETS", "bench_engines", "bench_vector", "replayed_ms_per_period"]
 
 ENGINE_TARGETS = {
     "mujoco_oracle_over_bare_mj_step": 0.9,
@@ -42,7 +42,7 @@ def _bare_ms_per_period(env: Any, periods: int) -> float:
     return 1e3 * (time.process_time() - t) / periods
 
 
-def replayed_ms_per_step(env: Any, actions: Any, seed: int) -> float:
+def replayed_ms_per_period(env: Any, actions: Any, seed: int) -> float:
     """Process-time ms per control period of MuJoCo's bare ``mj_step`` through the
     env's own periods: the env stepped over ``actions`` from ``reset(seed)`` as
     :func:`~agents.benchmarks.env.ms_per_step` steps it (the first 10 periods not
@@ -50,7 +50,7 @@ def replayed_ms_per_step(env: Any, actions: Any, seed: int) -> float:
     :attr:`~tensegrity_gym.sim.mujoco_world.MujocoWorld.trace` on; then the traced calls
     replayed from the state they began at, timed. The env is left where it ended."""
     if len(actions) <= 10:
-        raise ValueError(f"replayed_ms_per_step needs more than 10 actions, got {len(actions)}")
+        raise ValueError(f"replayed_ms_per_period needs more than 10 actions, got {len(actions)}")
     world = env.unwrapped.backend.world
     env.reset(seed=seed)
     for a in actions[:10]:
@@ -80,7 +80,7 @@ def bench_engines(
 ) -> dict[str, Any]:  # fmt: skip
     """ms per env step on each engine with the oracle and the UKF, ms per period of the
     bare engine step (at rest; MuJoCo's also through the oracle env's own periods,
-    :func:`replayed_ms_per_step`, which its target's ratio is taken against), and the
+    :func:`replayed_ms_per_period`, which its target's ratio is taken against), and the
     ratios of :data:`ENGINE_TARGETS` (speed-ups: > 1 is faster)."""
     envs = {(e, est): gym.make(env_id, engine=e, estimator=est)
             for e in _ENGINES for est in _ESTIMATORS}  # fmt: skip
@@ -97,7 +97,7 @@ def bench_engines(
                 env.reset(seed=seed)
                 key = f"{engine}_bare_ms_per_period"
                 times.setdefault(key, []).append(_bare_ms_per_period(env, max(steps // 3, 20)))
-            replayed = replayed_ms_per_step(envs["mujoco", "oracle"], actions, seed)
+            replayed = replayed_ms_per_period(envs["mujoco", "oracle"], actions, seed)
             times.setdefault("mujoco_replayed_ms_per_period", []).append(replayed)
     finally:
         for env in envs.values():

@@ -13,8 +13,8 @@ touching down are added to the state (eq. 9), those lifting off are marginalised
 
 It knows its position along the ground only relative to where it started (dead
 reckoning: the frame of :mod:`estimation.inekf.initialise`), and its heading only
-through the magnetometer at reset: both drift. Its height is held by the endcaps in
-contact, on the floor it started on (``InekfConfig.floor_correction``).
+through the magnetometer at reset: both drift. Its height is pulled back to the floor
+it started on by each endcap that touches down (``InekfConfig.floor_correction``).
 """
 
 from __future__ import annotations
@@ -439,7 +439,8 @@ class InekfEstimator:
         return self.detector.update(self.shape, self._up())
 
     def _kinematics(self) -> bool:
-        """Contacts updated, then every endcap in contact corrects; True if one did."""
+        """Contacts updated, then every endcap in contact corrects, and those that
+        touched down correct their height (:meth:`_correct_heights`); True if one did."""
         f, c = self.filter, self.config
         assert f is not None
         now = self._contacts()
@@ -485,10 +486,11 @@ class InekfEstimator:
         return accepted
 
     def _correct_heights(self, nodes: list[int]) -> None:
-        """The heights of the contacts ``nodes``, those that touched down at this stamp,
-        corrected toward the floor (``floor_correction``): once each, since the floor
-        under a contact that stays is the same floor (corrected at every stamp, 100 Hz,
-        a contact held for a second told the filter its height a hundred times over)."""
+        """The heights of the contacts ``nodes``, those that touched down at this stamp
+        (or again, re-anchored after a slide), corrected toward the floor
+        (``floor_correction``): once each, since the floor under a contact that stays
+        is the same floor (corrected at every stamp, 100 Hz, a contact held for a
+        second told the filter its height a hundred times over)."""
         f, c = self.filter, self.config
         assert f is not None and c.floor_std is not None
         if nodes:

@@ -462,9 +462,10 @@ def test_a_lost_imu_reading_makes_the_velocity_uncertain(share: float | None) ->
 def test_lost_imu_readings_cost_less_drift_when_they_make_the_velocity_uncertain() -> None:
     """A fifth of the base rod's readings dropped from a recorded rolling run: with the
     lost readings' variance the drift is less than without it, by at least a fifth,
-    and within 2 points of the clean run's (with the floor correction: 1.63 % against
-    6.7 %, clean 2.67 %; at 75312e0, before it, 7.45 % against 9.85 %, clean 2.68 %;
-    before that, with the shape solved on stale contacts, 6.3 % against 12.2 %)."""
+    and within 2 points of the clean run's (with the floor correction, at 8cf5bf9:
+    1.63 % against 6.7 %, clean 2.67 %; at 75312e0, before it, 7.45 % against 9.85 %,
+    clean 2.68 %; before that, with the shape solved on stale contacts, 6.3 % against
+    12.2 %)."""
     from agents.benchmarks.estimation import record_face_transition
     from agents.recordings.runs import replay
 

@@ -456,6 +456,8 @@ def test_a_height_correction_is_the_scalar_joseph_update_of_the_contacts_z() -> 
         f.correct_heights([3, 1], heights[:1], var)
     with pytest.raises(ValueError, match="node 4 is not in contact"):
         f.correct_heights([4], heights[:1], var)
+    with pytest.raises(ValueError, match="nodes must be distinct"):
+        f.correct_heights([3, 3], heights, var)
 
 
 def test_the_contacts_slip_density_can_change_between_propagations() -> None:
