@@ -135,6 +135,8 @@ class InekfEstimator:
         assert c.contact_std is not None and c.kinematics_std is not None  # set for the robot
         self.description = d
         self._rejected = {}
+        self.floor_corrections = 0
+        """How many contact heights the floor correction has used since the reset."""
         bounds = PlausibilityBounds.from_robot(d, calibration)
         self.screen = PlausibilityScreen(d, bounds, 1.0, self._rejected)
         self.health = EstimatorHealth(c.health, self.screen)
@@ -495,6 +497,7 @@ class InekfEstimator:
         assert f is not None and c.floor_std is not None
         if nodes:
             f.correct_heights(nodes, self.description.node_radii[nodes], c.floor_std**2)
+            self.floor_corrections += len(nodes)
 
     def _slipped(self, refused: list[int]) -> list[int]:
         """The ``refused`` contacts whose endcap, by the kinematics, lies off its contact

@@ -672,6 +672,19 @@ def test_a_height_drifted_off_within_the_ground_bound_comes_back_to_the_floor(
         assert off > 0.75 * lift, off
 
 
+def test_a_contact_that_stays_corrects_its_height_once() -> None:
+    """The floor under a held contact is the same floor: resting on its endcaps for
+    2 s, the robot's contacts correct their heights when they touch down and not at
+    every stamp after."""
+    est, backend, hold = _resting(seed=2)
+    assert est.filter is not None and est.filter.contact_nodes
+    before = est.floor_corrections
+    assert before >= len(est.filter.contact_nodes)
+    for _ in range(20):
+        est.update(list(backend.step(hold).samples), hold)
+    assert est.floor_corrections == before
+
+
 def test_the_heading_a_dead_reckoner_loses_is_in_info() -> None:
     """``info["estimator_heading_std_deg"]``: the InEKF's heading std, which nothing
     but the magnetometer at reset observes, grows as the robot rolls; the reason of a
