@@ -477,7 +477,8 @@ class InekfEstimator:
             for node in self._slipped(refused):
                 f.marginalise(node)
                 f.augment(node, self.shape[node], cov_touch)
-                new.append(node)
+                if node not in new:  # touched down at this stamp and slid at once: one height
+                    new.append(node)
         if c.floor_correction:
             self._correct_heights(new)
         accepted = len(refused) < len(nodes)
