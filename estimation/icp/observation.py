@@ -7,13 +7,22 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 if TYPE_CHECKING:
     from numpy.typing import NDArray
 
     from tensegrity_gym.model.description import RobotDescription
 
-__all__ = ["HueRange", "back_project", "endcap_masks", "fit_ground_plane", "hsv", "rod_hues"]
+__all__ = [
+    "HueRange",
+    "back_project",
+    "drop_stray_points",
+    "endcap_masks",
+    "fit_ground_plane",
+    "hsv",
+    "rod_hues",
+]
 
 
 @dataclass(frozen=True)
@@ -96,6 +105,23 @@ def back_project(
     fx, fy, cx, cy = intrinsics[0, 0], intrinsics[1, 1], intrinsics[0, 2], intrinsics[1, 2]
     cam = np.stack([(u + 0.5 - cx) / fx * z, (v + 0.5 - cy) / fy * z, z], axis=-1)
     return np.asarray(cam @ camera_pose[:3, :3].T + camera_pose[:3, 3])
+
+
+def drop_stray_points(
+    points: NDArray[np.float64], reach: float, min_neighbours: int
+) -> NDArray[np.float64]:
+    """``points`` (k, 3) (m) less those with fewer than ``min_neighbours`` others within
+    ``reach`` (m): pixels of a rod's colour whose depth is not the endcap's.
+
+    A depth camera's pixels on a silhouette's edge mix the colour of the endcap with the
+    depth of what lies behind it ("flying pixels": a real sensor's edges, and an
+    anti-aliased render's): back-projected, they fall metres behind the endcap, alone or
+    in twos, while an endcap's own points lie together on its sphere. One of them pulled
+    the initialisation's endcap 21 cm off on the other engine's frames."""
+    if min_neighbours <= 0 or len(points) == 0:
+        return points
+    counts = cKDTree(points).query_ball_point(points, reach, return_length=True)
+    return points[np.asarray(counts) > min_neighbours]  # each point counts itself
 
 
 def project(

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from estimation.icp.observation import (
     back_project,
+    drop_stray_points,
     endcap_masks,
     fit_ground_plane,
     project,
@@ -73,6 +74,10 @@ class IcpParams:
     """Section 4.4; off: unary weight 1 and binary weight 0.25 throughout."""
     noise_filter: bool = True
     """Section 4.5: drop an endcap's points deeper than its nearest plus its radius."""
+    stray_neighbours: int = 2
+    """A rod's coloured point with fewer than this many others within its endcap's
+    diameter is dropped before anything uses it (a flying pixel on the silhouette's
+    edge, :func:`drop_stray_points`); 0 keeps every point (as Lu et al. 2022)."""
     min_fitness: float = 0.03
     """Mean share of visible model points matched under which the track is lost."""
     max_speed: float = 3.0
@@ -92,6 +97,8 @@ class IcpParams:
             raise ValueError("need 0 < d_max_last <= d_max_first")
         if self.dummy_points < 0 or self.model_points < 8:
             raise ValueError("dummy_points must be >= 0 and model_points >= 8")
+        if self.stray_neighbours < 0:
+            raise ValueError(f"stray_neighbours must be >= 0, got {self.stray_neighbours}")
 
 
 @dataclass(frozen=True)
@@ -194,7 +201,13 @@ class IcpTracker:
         border[[0, -1], :] = border[:, [0, -1]] = True
         cut = (masks & border).any(axis=(1, 2))
         edge = int(np.argmax(cut)) if cut.any() else None
-        return [back_project(frame.depth, K, pose, m) for m in masks], edge
+        points = [
+            drop_stray_points(
+                back_project(frame.depth, K, pose, m), 2.0 * r, self.params.stray_neighbours
+            )
+            for m, r in zip(masks, self.radius, strict=True)
+        ]
+        return points, edge
 
     # ------------------------------------------------------------------ initialisation
 
@@ -550,9 +563,11 @@ class IcpTracker:
         lengths = cable_lengths if cable_lengths is not None else np.zeros(len(cables))
         ci, cj = cables[:, 0], cables[:, 1]
         if p.cable_gate is not None and physical:
-            # A slack cable's stretch sensor reads near its rest length, far from the
-            # endcap distance; such a reading would drag the rods to fit it.
-            off = np.abs(np.linalg.norm(hat[ci] - hat[cj], axis=1) - lengths)
+            # A slack cable's stretch sensor reads near its rest length, longer than the
+            # endcap distance; such a reading would drag the rods apart to fit it. A
+            # reading shorter than the distance is no slack cable's: the endcaps are too
+            # far apart (an unseen one swung off), and the cable pulls them back.
+            off = lengths - np.linalg.norm(hat[ci] - hat[cj], axis=1)
             w_bin = np.where(off > p.cable_gate, 0.0, w_bin)
 
         def objective(v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:

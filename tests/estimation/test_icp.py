@@ -251,3 +251,96 @@ def test_a_robot_partly_out_of_view_is_not_placed_and_named_when_lost(first_fram
     tracker.nodes = tracker.nodes + np.array([0.5, 0.0, 0.0])  # the track slid away
     result = tracker.track(replace(cut, t=frame.t + 0.1), cables, np.random.default_rng(0))
     assert result.lost and result.cause == "out of view", result.reason
+
+
+def test_drop_stray_points_keeps_an_endcap_and_drops_lone_points() -> None:
+    from estimation.icp.observation import drop_stray_points
+
+    rng = np.random.default_rng(3)
+    cap = 0.0175 * Rotation.random(30, random_state=4).apply([0.0, 0.0, 1.0])  # on a sphere
+    cap += rng.normal(0.0, 0.001, cap.shape)
+    stray = np.array([[0.3, 0.0, -0.2], [0.31, 0.0, -0.2], [-0.4, 0.1, 0.0]])  # a pair, a lone
+    points = np.vstack([cap, stray])
+    kept = drop_stray_points(points, 0.035, 2)
+    assert len(kept) == len(cap) and np.array_equal(kept, cap)
+    assert len(drop_stray_points(points, 0.035, 0)) == len(points)  # 0 keeps every point
+    assert len(drop_stray_points(np.zeros((0, 3)), 0.035, 2)) == 0
+
+
+def _with_flying_pixels(frame: RgbdFrame, hues, per_rod: int) -> RgbdFrame:
+    """``frame`` with ``per_rod`` pixels beside each rod's endcaps painted its colour
+    while keeping the floor's depth behind them: the silhouette's edge of a real depth
+    camera or an anti-aliased render, where colour and depth come from different
+    surfaces."""
+    rgb, depth = frame.rgb.copy(), frame.depth.copy()
+    masks = endcap_masks(frame.rgb, hues)
+    for mask in masks:
+        rows, cols = np.nonzero(mask)
+        colour = rgb[rows[0], cols[0]].copy()
+        # pixels a little left of the rod's leftmost endcap pixel: the floor's depth
+        for k in range(per_rod):
+            r, c = rows[np.argmin(cols)] + k, cols.min() - 2
+            rgb[r, c] = colour
+    return replace(frame, rgb=rgb, depth=depth)
+
+
+def test_flying_pixels_do_not_move_the_initialisation(first_frame) -> None:
+    """Pixels of a rod's colour at the floor's depth (metres behind the endcap, seen
+    from the camera) pulled the initialisation's endcaps tens of centimetres off on the
+    other engine's frames; the stray-point filter keeps them out."""
+    from estimation.icp.tracker import IcpTracker
+
+    sim, frame, _, start = first_frame
+    d = sim.description
+    truth = sim.ground_truth().node_positions
+    cables = next(s.lengths for s in start if isinstance(s, CableLengthSample))
+    flying = _with_flying_pixels(frame, rod_hues(d), per_rod=2)
+
+    def placed(params: IcpParams) -> float:
+        tracker = IcpTracker(d, sim.calibration, params)
+        assert tracker.initialise(flying, cables, np.random.default_rng(0))
+        assert tracker.nodes is not None
+        return float(np.linalg.norm(tracker.nodes - truth, axis=1).max())
+
+    assert placed(IcpParams(stray_neighbours=0)) > 0.1  # the pixels do move it, unfiltered
+    assert placed(IcpParams()) < 0.03
+
+
+def test_a_cable_reading_shorter_than_the_endcaps_pulls_an_unseen_endcap_back(first_frame) -> None:
+    """An endcap the camera does not see, swung off so that all its cables read more
+    than ``cable_gate`` shorter than its distances, is pulled back by them: only a
+    reading longer than the distance may be a slack cable's, and only such a one is
+    left out of the correction."""
+    from estimation.icp.tracker import IcpTracker
+
+    sim, _, _, _ = first_frame
+    d = sim.description
+    truth = sim.ground_truth().node_positions
+    cables = d.cable_nodes
+    lengths = np.linalg.norm(truth[cables[:, 0]] - truth[cables[:, 1]], axis=1)
+    i, j = d.rod_nodes[0]
+    touching = np.flatnonzero((cables == i).any(axis=1))
+
+    def swung(rotvec: np.ndarray) -> np.ndarray:
+        hat = truth.copy()
+        hat[i] = truth[j] + Rotation.from_rotvec(rotvec).apply(truth[i] - truth[j])
+        return hat
+
+    def shortest_excess(hat: np.ndarray) -> float:
+        dist = np.linalg.norm(hat[cables[:, 0]] - hat[cables[:, 1]], axis=1)
+        return float((dist - lengths)[touching].min())
+
+    turns = [1.2 * axis for axis in Rotation.random(200, random_state=5).apply([1.0, 0.0, 0.0])]
+    above = [t for t in turns if swung(t)[i, 2] > d.rods[0].endcap_radius]
+    hat = swung(max(above, key=lambda t: shortest_excess(swung(t))))  # 36 cm off
+    gate = IcpParams().cable_gate
+    assert gate is not None and shortest_excess(hat) > gate  # a two-sided gate drops them all
+    ratio = np.ones(d.n_nodes)
+    ratio[i] = 0.0  # not seen: held by its cables
+    tracker = IcpTracker(d, sim.calibration)
+    corrected = hat
+    errors = [float(np.linalg.norm(hat[i] - truth[i]))]
+    for _ in range(IcpParams().max_iterations):  # a frame's rounds, no points seen for it
+        corrected = tracker._correct(corrected, hat, ratio, lengths)
+        errors.append(float(np.linalg.norm(corrected[i] - truth[i])))
+    assert errors[1] < 0.8 * errors[0] and errors[-1] < 0.5 * errors[0], errors
