@@ -87,8 +87,10 @@ class IcpParams:
     beyond which the track is lost: a rod caught in a wrong pose still matches some of
     its points, but not the cables. (The median missed such poses in the benchmark.)"""
     cable_gate: float | None = 0.04
-    """A cable whose reading differs from the transition's endcap distance by more (m)
-    is left out of the correction; None keeps every cable (as Lu et al. 2022)."""
+    """A cable whose reading is longer than the transition's endcap distance by more (m)
+    is left out of the correction (a slack cable's sensor reads its rest length); one
+    reading shorter is kept: it pulls endcaps too far apart back together. None keeps
+    every cable (as Lu et al. 2022)."""
 
     def __post_init__(self) -> None:
         if self.max_iterations < 1:
