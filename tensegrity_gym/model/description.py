@@ -237,6 +237,10 @@ class CameraConfig:
     ``depth_noise + depth_noise_quadratic * depth**2``."""
     depth_noise_quadratic: float
     """Depth noise growth with the square of the range (m per m^2)."""
+    flying_pixels: float = 0.0
+    """Share of the pixels on the near side of a depth edge that read a depth between the
+    near surface and the far one behind it, keeping the near one's colour: a real depth
+    sensor's mixed ("flying") pixels on silhouettes. 0 on the presets."""
 
     @property
     def intrinsics(self) -> NDArray[np.float64]:

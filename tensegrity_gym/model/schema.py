@@ -241,6 +241,8 @@ class CameraSection(_Section):
     rate: Positive
     depth_noise: NonNegative
     depth_noise_quadratic: NonNegative
+    flying_pixels: Annotated[StrictFloat, Field(ge=0, le=1, allow_inf_nan=False)] = 0.0
+    """Share of a depth edge's near pixels that read between the near and the far depth."""
 
 
 class SensorsSection(_Section):

@@ -334,8 +334,42 @@ class UwbModel:
         return out
 
 
+FLYING_PIXEL_STEP = 0.05
+"""m: a depth step between two neighbouring pixels beyond which the nearer lies on a
+depth edge, where a real sensor mixes the two surfaces (:attr:`CameraConfig.flying_pixels`)."""
+
+
+def _deepest_neighbour(depth: NDArray[np.float32], far: float) -> NDArray[np.float32]:
+    """(H, W) the largest true depth among each pixel's four neighbours and itself,
+    leaving out those with no return (at the far plane): nothing to mix with there."""
+    d = np.where(depth >= 0.999 * far, np.float32(0.0), depth)
+    out = d.copy()
+    np.maximum(out[1:], d[:-1], out=out[1:])
+    np.maximum(out[:-1], d[1:], out=out[:-1])
+    np.maximum(out[:, 1:], d[:, :-1], out=out[:, 1:])
+    np.maximum(out[:, :-1], d[:, 1:], out=out[:, :-1])
+    return out
+
+
+def _flying_pixels(
+    noisy: NDArray[np.float32], depth: NDArray[np.float32], share: float, far: float,
+    rng: np.random.Generator,
+) -> None:  # fmt: skip
+    """Move ``share`` of the pixels on the near side of a depth edge of ``depth`` (H, W)
+    (m, true) to a depth drawn uniformly between theirs and their deepest neighbour's,
+    in place in ``noisy``: a depth sensor's pixel that sees two surfaces reads between
+    them (its colour stays the near surface's)."""
+    behind = _deepest_neighbour(depth, far) - depth
+    rows, cols = np.nonzero(behind > FLYING_PIXEL_STEP)
+    picked = rng.random(len(rows)) < share
+    rows, cols = rows[picked], cols[picked]
+    mix = rng.random(len(rows)).astype(np.float32)
+    noisy[rows, cols] += mix * behind[rows, cols]
+
+
 class CameraModel:
-    """The fixed overhead RGB-D camera: depth noise grows with the square of the range."""
+    """The fixed overhead RGB-D camera: depth noise grows with the square of the range;
+    pixels on depth edges may read between the two surfaces (flying pixels)."""
 
     def __init__(self, config: CameraConfig) -> None:
         self.config = config
@@ -351,5 +385,7 @@ class CameraModel:
         # In float32 throughout: the frame is float32, and this runs every camera frame.
         sigma = np.float32(c.depth_noise) + np.float32(c.depth_noise_quadratic) * depth * depth
         noisy = depth + sigma * rng.standard_normal(depth.shape, dtype=np.float32)
+        if c.flying_pixels > 0.0:  # no draw otherwise: the frames of before, bit for bit
+            _flying_pixels(noisy, depth, c.flying_pixels, c.far, rng)
         noisy[(depth >= 0.999 * c.far) | (noisy <= 0.0)] = 0.0  # no return
         return RgbdFrame(t, rgb, noisy)

@@ -286,6 +286,10 @@ MALFORMED = {
         _set(("cables", 0, "stiffness"), "1e3"),  # YAML 1.1 reads 1e3 as text
         ["cables[0].stiffness", "expected a number, got '1e3'"],
     ),
+    "camera_flying_pixels_above_one": (
+        _set(("sensors", "camera", "flying_pixels"), 1.5),
+        ["sensors.camera.flying_pixels", "1"],
+    ),
     "imu_full_scale_misspelt": (
         _set(("sensors", "imu", "accel_fullscale"), 100.0),
         ["sensors.imu.accel_fullscale", "unknown"],

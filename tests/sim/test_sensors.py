@@ -704,3 +704,49 @@ def test_float_arrays_are_float64(rest: RestRun) -> None:
         for array in _arrays(s):
             if array.dtype.kind == "f":
                 assert array.dtype == np.float64, type(s).__name__
+
+
+def _edge_scene(far_plane: float) -> tuple[NDArray[np.uint8], NDArray[np.float32]]:
+    """A 40 x 40 frame: a square 1 m away on a floor 2 m away, and a strip of sky (no
+    return, at the far plane) along the top, touching the square."""
+    depth = np.full((40, 40), 2.0, dtype=np.float32)
+    depth[10:30, 10:30] = 1.0
+    depth[:5, :] = far_plane
+    depth[5:10, 15:25] = 1.0  # the square reaches up to the sky
+    rgb = np.zeros((40, 40, 3), dtype=np.uint8)
+    rgb[depth == 1.0] = (255, 0, 0)
+    return rgb, depth
+
+
+def test_flying_pixels_read_between_the_two_surfaces_of_a_depth_edge(d: RobotDescription) -> None:
+    from tensegrity_gym.sim.sensors import CameraModel
+
+    quiet = dataclasses.replace(d.sensors.camera, depth_noise=0.0, depth_noise_quadratic=0.0)
+    rgb, depth = _edge_scene(quiet.far)
+    near = depth == 1.0
+    pad = np.pad(depth, 1, constant_values=1.0)
+    beside_floor = near & (
+        (pad[:-2, 1:-1] == 2.0) | (pad[2:, 1:-1] == 2.0)
+        | (pad[1:-1, :-2] == 2.0) | (pad[1:-1, 2:] == 2.0)
+    )  # fmt: skip
+
+    def frame(share: float, noise: bool = False, seed: int = 0) -> NDArray[np.float32]:
+        config = dataclasses.replace(d.sensors.camera if noise else quiet, flying_pixels=share)
+        model = CameraModel(config)
+        return model.frame(0.0, rgb, depth.copy(), np.random.default_rng(seed)).depth
+
+    clean = frame(0.0)
+    sky = depth >= quiet.far
+    assert np.array_equal(clean[~sky], depth[~sky]) and np.all(clean[sky] == 0.0)
+    every = frame(1.0)
+    moved = every != clean
+    assert np.array_equal(moved, beside_floor)  # the edge toward the floor, not the sky's
+    assert np.all((every[moved] > 1.0) & (every[moved] < 2.0))  # between the two surfaces
+    assert np.array_equal(every[sky], clean[sky])  # no return stays none
+    half = frame(0.5) != clean
+    assert 0.3 < half.sum() / beside_floor.sum() < 0.7
+    # The noise is drawn first: off the edges the frames agree bit for bit, and the
+    # same seed gives the same frame.
+    noisy0, noisy1 = frame(0.0, noise=True), frame(1.0, noise=True)
+    assert np.array_equal(noisy0[~beside_floor], noisy1[~beside_floor])
+    assert np.array_equal(noisy1, frame(1.0, noise=True))
