@@ -115,9 +115,10 @@ def drop_stray_points(
 
     A depth camera's pixels on a silhouette's edge mix the colour of the endcap with the
     depth of what lies behind it ("flying pixels": a real sensor's edges, and an
-    anti-aliased render's): back-projected, they fall metres behind the endcap, alone or
-    in twos, while an endcap's own points lie together on its sphere. One of them pulled
-    the initialisation's endcap 21 cm off on the other engine's frames."""
+    anti-aliased render's): back-projected, they fall tens of centimetres behind the
+    endcap, alone or in twos, while an endcap's own points lie together on its sphere.
+    Two of them put a rod's midpoint 21 cm off at the initialisation on the other
+    engine's frames."""
     if min_neighbours <= 0 or len(points) == 0:
         return points
     counts = cKDTree(points).query_ball_point(points, reach, return_length=True)
