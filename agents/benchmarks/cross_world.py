@@ -122,6 +122,10 @@ def score_run(run: RecordedRun, estimator: str, seed: int) -> dict[str, Any]:
     if any(t is None for t in truths):
         raise ValueError("cross-world runs are recorded with their truth")
     drift = drift_metrics(truths, estimates, run.description.cable_nodes)  # type: ignore[arg-type]
+    # The invariant EKF's contact heights used (one a touch-down): a flickering contact
+    # sensor would correct the same floor again and again.
+    corrections = getattr(made, "floor_corrections", None)
+    floor = {} if corrections is None else {"floor_corrections": float(corrections)}
     return {
         "reasons": reasons,
         "com_path_m": drift["com_ground_length_m"],
@@ -133,6 +137,7 @@ def score_run(run: RecordedRun, estimator: str, seed: int) -> dict[str, Any]:
         "nees_per_dof": round(nees_per_dof(run, estimates), 3),
         "reinitialisations": float(errors["reinitialisations"]),
         "finite": float(errors["finite"]),
+        **floor,
     }
 
 

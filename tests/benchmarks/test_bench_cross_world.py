@@ -39,3 +39,17 @@ def test_nees_is_nan_without_a_covariance_and_near_one_for_the_ukf_at_home() -> 
     estimates = replay(run, UkfEstimator())
     assert 0.3 < nees_per_dof(run, estimates) < 2.0
     assert np.isnan(nees_per_dof(run, [replace(e, covariance=None) for e in estimates]))
+
+
+@pytest.mark.slow  # 7 s; the default run is near its 15 minutes
+def test_the_invariant_ekf_s_floor_corrections_are_counted_per_run() -> None:
+    """The InEKF's row counts the contact heights it used (one a touch-down, so that a
+    flickering contact sensor shows); an estimator without them has no such figure."""
+    from agents.benchmarks.cross_world import ESTIMATOR_ROBOTS, score_run
+
+    env_id, gait = ESTIMATOR_ROBOTS["inekf"]["rolling"]
+    run = record_face_transition(env_id, 0, 20, gait=gait, calibration="true")
+    inekf = score_run(run, "inekf", 0)
+    seconds = 20 * run.control_period
+    assert 1 <= inekf["floor_corrections"] <= 6 * seconds * run.description.n_nodes / 2
+    assert "floor_corrections" not in score_run(run, "ukf_large", 0)
