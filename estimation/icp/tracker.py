@@ -550,27 +550,12 @@ class IcpTracker:
         """Eq. 2 by SLSQP, with the constraints of section 4.3 (``physical``: the ground
         and rod-rod ones; the rod lengths always). Weights as section 4.4 unless given."""
         p = self.params
-        d = self.description
         n = len(hat)
         if w_unary is None:
             w_unary = np.maximum(ratio, 0.1) if p.adaptive_weights else np.ones(n)
-        cables = d.cable_nodes
-        if cable_lengths is None:
-            w_bin = np.zeros(len(cables))
-        elif w_bin is None:
-            ri, rj = ratio[cables[:, 0]], ratio[cables[:, 1]]
-            mixed = np.where((ri < 0.2) | (rj < 0.2), 0.25, 0.25 * (1.0 - 0.5 * (ri + rj)))
-            adaptive = np.where((ri > 0.5) & (rj > 0.5), 0.0, mixed)
-            w_bin = adaptive if p.adaptive_weights else np.full(len(cables), 0.25)
-        lengths = cable_lengths if cable_lengths is not None else np.zeros(len(cables))
+        w_bin, lengths = self._cable_weights(hat, ratio, cable_lengths, w_bin, physical)
+        cables = self.description.cable_nodes
         ci, cj = cables[:, 0], cables[:, 1]
-        if p.cable_gate is not None and physical:
-            # A slack cable's stretch sensor reads near its rest length, longer than the
-            # endcap distance; such a reading would drag the rods apart to fit it. A
-            # reading shorter than the distance is no slack cable's: the endcaps are too
-            # far apart (an unseen one swung off), and the cable pulls them back.
-            off = lengths - np.linalg.norm(hat[ci] - hat[cj], axis=1)
-            w_bin = np.where(off > p.cable_gate, 0.0, w_bin)
 
         def objective(v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
             q = v.reshape(n, 3)
@@ -585,23 +570,7 @@ class IcpTracker:
             np.add.at(grad, cj, -g)
             return value, grad.ravel()
 
-        constraints = []
-        for k, (i, j) in enumerate(self.rod_nodes):
-            L = self.node_spacing[k]
-
-            def rod_length(v: NDArray[np.float64], i: int = i, j: int = j, L: float = L) -> float:
-                q = v.reshape(n, 3)
-                return float(np.sum((q[j] - q[i]) ** 2) - L * L)
-
-            def rod_length_jac(
-                v: NDArray[np.float64], i: int = i, j: int = j
-            ) -> NDArray[np.float64]:
-                q = v.reshape(n, 3)
-                g = np.zeros((n, 3))
-                g[j], g[i] = 2.0 * (q[j] - q[i]), -2.0 * (q[j] - q[i])
-                return g.ravel()
-
-            constraints.append({"type": "eq", "fun": rod_length, "jac": rod_length_jac})
+        constraints = self._rod_length_constraints(n)
         if p.ground_constraint and physical:
             normal, offset = self.ground
             floor, jac = self._node_radius, self._ground_jac
@@ -624,6 +593,57 @@ class IcpTracker:
         )
         out = result.x.reshape(n, 3)
         return out if np.all(np.isfinite(out)) else hat
+
+    def _cable_weights(
+        self,
+        hat: NDArray[np.float64],
+        ratio: NDArray[np.float64],
+        cable_lengths: NDArray[np.float64] | None,
+        w_bin: Vec | None,
+        physical: bool,
+    ) -> tuple[Vec, Vec]:
+        """Each cable's weight in eq. 2 (section 4.4's, unless ``w_bin`` is given; 0
+        without readings, or for a reading the gate leaves out) and the lengths it is
+        fitted to (m), both (c,)."""
+        p = self.params
+        cables = self.description.cable_nodes
+        if cable_lengths is None:
+            return np.zeros(len(cables)), np.zeros(len(cables))
+        if w_bin is None:
+            ri, rj = ratio[cables[:, 0]], ratio[cables[:, 1]]
+            mixed = np.where((ri < 0.2) | (rj < 0.2), 0.25, 0.25 * (1.0 - 0.5 * (ri + rj)))
+            adaptive = np.where((ri > 0.5) & (rj > 0.5), 0.0, mixed)
+            w_bin = adaptive if p.adaptive_weights else np.full(len(cables), 0.25)
+        if p.cable_gate is not None and physical:
+            # A slack cable's stretch sensor reads near its rest length, longer than the
+            # endcap distance; such a reading would drag the rods apart to fit it. A
+            # reading shorter than the distance is no slack cable's: the endcaps are too
+            # far apart (an unseen one swung off), and the cable pulls them back.
+            off = cable_lengths - np.linalg.norm(hat[cables[:, 0]] - hat[cables[:, 1]], axis=1)
+            w_bin = np.where(off > p.cable_gate, 0.0, w_bin)
+        return w_bin, cable_lengths
+
+    def _rod_length_constraints(self, n: int) -> list[dict[str, object]]:
+        """SLSQP equality constraints holding each rod's endcaps at its length (section
+        4.3), over the ``n`` endcaps' flattened positions."""
+        constraints: list[dict[str, object]] = []
+        for k, (i, j) in enumerate(self.rod_nodes):
+            L = self.node_spacing[k]
+
+            def rod_length(v: NDArray[np.float64], i: int = i, j: int = j, L: float = L) -> float:
+                q = v.reshape(n, 3)
+                return float(np.sum((q[j] - q[i]) ** 2) - L * L)
+
+            def rod_length_jac(
+                v: NDArray[np.float64], i: int = i, j: int = j
+            ) -> NDArray[np.float64]:
+                q = v.reshape(n, 3)
+                g = np.zeros((n, 3))
+                g[j], g[i] = 2.0 * (q[j] - q[i]), -2.0 * (q[j] - q[i])
+                return g.ravel()
+
+            constraints.append({"type": "eq", "fun": rod_length, "jac": rod_length_jac})
+        return constraints
 
     def _rod_rod_constraints(
         self, previous: NDArray[np.float64], n: int

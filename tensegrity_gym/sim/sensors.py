@@ -339,10 +339,15 @@ FLYING_PIXEL_STEP = 0.05
 depth edge, where a real sensor mixes the two surfaces (:attr:`CameraConfig.flying_pixels`)."""
 
 
+def _no_return(depth: NDArray[np.float32], far: float) -> NDArray[np.bool_]:
+    """(H, W) the pixels whose true depth is the far plane: nothing there to return."""
+    return np.asarray(depth >= 0.999 * far)
+
+
 def _deepest_neighbour(depth: NDArray[np.float32], far: float) -> NDArray[np.float32]:
     """(H, W) the largest true depth among each pixel's four neighbours and itself,
     leaving out those with no return (at the far plane): nothing to mix with there."""
-    d = np.where(depth >= 0.999 * far, np.float32(0.0), depth)
+    d = np.where(_no_return(depth, far), np.float32(0.0), depth)
     out = d.copy()
     np.maximum(out[1:], d[:-1], out=out[1:])
     np.maximum(out[:-1], d[1:], out=out[:-1])
@@ -387,5 +392,5 @@ class CameraModel:
         noisy = depth + sigma * rng.standard_normal(depth.shape, dtype=np.float32)
         if c.flying_pixels > 0.0:  # no draw otherwise: the frames of before, bit for bit
             _flying_pixels(noisy, depth, c.flying_pixels, c.far, rng)
-        noisy[(depth >= 0.999 * c.far) | (noisy <= 0.0)] = 0.0  # no return
+        noisy[_no_return(depth, c.far) | (noisy <= 0.0)] = 0.0
         return RgbdFrame(t, rgb, noisy)
