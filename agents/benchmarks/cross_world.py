@@ -1,13 +1,16 @@
 """Every estimator on data from worlds it was not tuned in.
 
 The estimators were built and tuned in the PyBullet world of the nominal descriptions.
-Here each one is scored on three worlds, the same seeds and gaits in each:
+Here each one is scored on four worlds, the same seeds and gaits in each:
 
 - ``own``: that world (PyBullet, the description the estimator is handed);
 - ``other_engine``: the MuJoCo engine, the robot's MJCF from the same description;
 - ``description_error``: PyBullet, the robot built from a description drawn off the
   nominal one (``randomization="description"``: rod lengths, endcaps, motor ranges,
-  encoder zeros, stiffness, rest lengths, masses), the estimator keeping the nominal.
+  encoder zeros, stiffness, rest lengths, masses), the estimator keeping the nominal;
+- ``stiff_contacts``: MuJoCo with contacts as stiff as it integrates (the engine
+  ``mujoco_stiff``), as MuJoCo models written elsewhere set them: hard impacts that clip
+  the accelerometer, and more hops.
 
 Each run is recorded once (the gait driven by the true state, RGB-D frames too where
 an estimator needs them) and every estimator of that robot is replayed on it with the
@@ -55,6 +58,7 @@ WORLDS: dict[str, dict[str, Any]] = {
     "own": {},
     "other_engine": {"engine": "mujoco"},
     "description_error": {"randomization": "description"},
+    "stiff_contacts": {"engine": "mujoco_stiff"},
 }
 """The worlds by name: the arguments of ``gym.make`` each adds."""
 

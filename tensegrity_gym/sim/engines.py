@@ -176,9 +176,17 @@ def check_engine(name: object) -> EngineSpec:
 
 
 register_engine("pybullet", "tensegrity_gym.sim.world:PhysicsWorld", window=True)
+_MUJOCO_INSTALL = "pip install 'tensegrity-gym[mujoco]'"
+_MUJOCO_RENDERS = "tensegrity_gym.sim.mujoco_world:can_render"
 register_engine(
     "mujoco",
     "tensegrity_gym.sim.mujoco_world:MujocoWorld",
-    install="pip install 'tensegrity-gym[mujoco]'",
-    renders="tensegrity_gym.sim.mujoco_world:can_render",
+    install=_MUJOCO_INSTALL,
+    renders=_MUJOCO_RENDERS,
+)
+register_engine(  # a world to test estimators on: hard impacts
+    "mujoco_stiff",
+    "tensegrity_gym.sim.mujoco_world:stiff_contacts_world",
+    install=_MUJOCO_INSTALL,
+    renders=_MUJOCO_RENDERS,
 )

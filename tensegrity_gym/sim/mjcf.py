@@ -44,14 +44,24 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import Ground, RobotDescription, Rod
     from tensegrity_gym.sim.terrain import Terrain
 
-__all__ = ["HFIELD", "INTEGRATOR", "contact_coefficients", "hfield_data", "robot_mjcf", "site_name"]
+__all__ = [
+    "HFIELD",
+    "INTEGRATOR",
+    "MIN_CONTACT_STEPS",
+    "contact_coefficients",
+    "hfield_data",
+    "robot_mjcf",
+    "site_name",
+]
 
 HFIELD = "terrain"
 """The name of the height field asset (and its geom) where the ground is a terrain."""
 INTEGRATOR = "implicitfast"
 """MuJoCo's integrator for these models: the cables' damping is taken implicitly."""
 _CONTACT_TIME_STEPS = 5.0
-"""A contact's time constant in physics steps (MuJoCo wants at least 2)."""
+"""A contact's time constant in physics steps, by default."""
+MIN_CONTACT_STEPS = 2.0
+"""The shortest contact time constant, in physics steps, that MuJoCo integrates stably."""
 _MIN_CONTACT_TIME = 0.005  # s: stiff enough that a resting robot sinks under a mm
 _FLOOR_RGBA = "0.55 0.55 0.5 1"  # as the PyBullet world's floor
 _ROD_RGBA = "0.3 0.3 0.3 1"
@@ -96,10 +106,16 @@ def contact_coefficients(ground: Ground) -> tuple[float, float, float, float]:
     )
 
 
-def _contact(description: RobotDescription, time_step: float) -> dict[str, str]:
-    """The attributes every geom shares: friction, contact dimension, softness."""
+def _contact(
+    description: RobotDescription, time_step: float, contact_steps: float | None = None
+) -> dict[str, str]:
+    """The attributes every geom shares: friction, contact dimension, softness (the
+    contact's time constant ``contact_steps`` physics steps; None: the default)."""
     sliding, spinning, rolling, restitution = contact_coefficients(description.ground)
-    time_constant = max(_CONTACT_TIME_STEPS * time_step, _MIN_CONTACT_TIME)
+    if contact_steps is None:
+        time_constant = max(_CONTACT_TIME_STEPS * time_step, _MIN_CONTACT_TIME)
+    else:
+        time_constant = contact_steps * time_step
     return {
         "friction": _vector([sliding, spinning, rolling]),
         "condim": "6",
@@ -203,10 +219,18 @@ def robot_mjcf(
     time_step: float,
     gravity: NDArray[np.float64] | None = None,
     terrain: Terrain | None = None,
+    contact_steps: float | None = None,
 ) -> str:
     """The MJCF text of ``description`` on ``terrain`` (None or flat: the plane z = 0)
     under ``gravity`` (3,) m/s^2 (default: the description's, straight down), stepped at
-    ``time_step`` seconds. Rods start at the description's initial pose."""
+    ``time_step`` seconds. Rods start at the description's initial pose. The contacts'
+    time constant is ``contact_steps`` physics steps, at least
+    :data:`MIN_CONTACT_STEPS` (None: 5 steps and at least 5 ms)."""
+    if contact_steps is not None and not contact_steps >= MIN_CONTACT_STEPS:
+        raise ValueError(
+            f"contact_steps must be at least {MIN_CONTACT_STEPS} (MuJoCo's stable minimum), "
+            f"got {contact_steps!r}"
+        )
     g = np.array([0.0, 0.0, -description.gravity]) if gravity is None else gravity
     root = ET.Element("mujoco", model=description.name)
     ET.SubElement(root, "compiler", angle="radian", autolimits="true")
@@ -223,7 +247,7 @@ def robot_mjcf(
                   rgba=_FLOOR_RGBA)  # fmt: skip
     world = ET.SubElement(root, "worldbody")
     ET.SubElement(world, "light", pos="0 0 10", dir="0 0 -1", directional="true")
-    contact = _contact(description, time_step)
+    contact = _contact(description, time_step, contact_steps)
     _ground(world, asset, terrain, contact)
     for index in range(description.n_rods):
         _rod_body(world, description, index, contact)

@@ -36,7 +36,7 @@ from tensegrity_gym.model.kinematics import (
 )
 from tensegrity_gym.model.lie import quat_to_matrix
 from tensegrity_gym.model.samples import ns_to_seconds
-from tensegrity_gym.sim.mjcf import hfield_data, robot_mjcf
+from tensegrity_gym.sim.mjcf import MIN_CONTACT_STEPS, hfield_data, robot_mjcf
 from tensegrity_gym.sim.world import Snapshot
 
 if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
@@ -57,7 +57,7 @@ if TYPE_CHECKING:
     from tensegrity_gym.model.description import CameraConfig, RobotDescription
     from tensegrity_gym.sim.terrain import Terrain
 
-__all__ = ["MujocoCheckpoint", "MujocoWorld", "can_render"]
+__all__ = ["MujocoCheckpoint", "MujocoWorld", "can_render", "stiff_contacts_world"]
 
 MujocoCheckpoint = tuple[Any, list[float], list[float], int]
 """MuJoCo's integration state (physics, controls: the passive cables' rest lengths, the
@@ -71,6 +71,23 @@ _BLOWN_UP = np.array(
         int(mujoco.mjtWarning.mjWARN_BADQPOS),
     ]
 )
+
+
+def stiff_contacts_world(
+    description: RobotDescription,
+    time_step: float,
+    gui: bool = False,
+    terrain: Terrain | None = None,
+) -> MujocoWorld:
+    """The engine ``mujoco_stiff``: MuJoCo's world with contacts as stiff as it integrates
+    (a time constant of :data:`~tensegrity_gym.sim.mjcf.MIN_CONTACT_STEPS` physics
+    steps, 2 ms at 1 kHz, against 5 ms by default), as MuJoCo models of tensegrity robots
+    written elsewhere often set them: impacts end within a few milliseconds, hard
+    enough to clip the accelerometer, and the robot hops more. A world to test an
+    estimator on, not one tuned to agree with PyBullet's."""
+    return MujocoWorld(
+        description, time_step, gui=gui, terrain=terrain, contact_steps=MIN_CONTACT_STEPS
+    )
 
 
 @functools.cache
@@ -108,6 +125,7 @@ class MujocoWorld:
         time_step: float,
         gui: bool = False,
         terrain: Terrain | None = None,
+        contact_steps: float | None = None,
     ) -> None:
         if gui:
             raise RuntimeError(
@@ -116,6 +134,8 @@ class MujocoWorld:
         self.description = description
         self.time_step = time_step
         self.terrain = terrain
+        self.contact_steps = contact_steps
+        """The contacts' time constant in physics steps (:func:`robot_mjcf`); None: the default."""
         self.gravity = np.array([0.0, 0.0, -description.gravity])
         """(3,) m/s^2 in the world frame, set at the next :meth:`_build`."""
         self._time_step_ns = round(time_step * 1e9)
@@ -153,7 +173,7 @@ class MujocoWorld:
         key = (d, self.gravity.tobytes(), self.time_step)
         if key != self._key or not _same_ground(self.terrain, self._built_terrain):
             text = robot_mjcf(d, time_step=self.time_step, gravity=self.gravity,
-                              terrain=self.terrain)  # fmt: skip
+                              terrain=self.terrain, contact_steps=self.contact_steps)  # fmt: skip
             self.model = mujoco.MjModel.from_xml_string(text)
             if self.terrain is not None and not self.terrain.is_flat:
                 self.model.hfield_data[:] = hfield_data(self.terrain)

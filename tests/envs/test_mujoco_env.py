@@ -43,8 +43,24 @@ def test_gymnasium_and_sb3_check_env_on_mujoco(env_id: str) -> None:
         env.close()
 
 
+def test_check_env_and_seeded_rollouts_on_the_stiff_engine() -> None:
+    """``engine="mujoco_stiff"`` (MuJoCo with stiff contacts) is an engine like the others."""
+    env = gym.make(ROLL, engine="mujoco_stiff")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            check_env(env.unwrapped, skip_render_check=True)
+        assert env.unwrapped.backend.world.contact_steps == 2.0
+    finally:
+        env.close()
+    stiff = _rollout(3, steps=8, engine="mujoco_stiff")
+    assert _equal(stiff, _rollout(3, steps=8, engine="mujoco_stiff"))
+    assert not _equal(stiff, _rollout(3, steps=8))
+
+
 def _rollout(seed: int, env_id: str = ROLL, steps: int = 20, **kwargs: Any) -> list[Any]:
-    env = gym.make(env_id, engine="mujoco", **kwargs)
+    kwargs.setdefault("engine", "mujoco")
+    env = gym.make(env_id, **kwargs)
     rng = np.random.default_rng(seed + 100)
     obs, info = env.reset(seed=seed)
     record = [obs, info["com_true"]]

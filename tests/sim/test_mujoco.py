@@ -24,7 +24,7 @@ from tensegrity_gym.model.lie import quat_to_matrix
 from tensegrity_gym.sim.backend import SimBackend, settled_pose
 from tensegrity_gym.sim.cables import cable_wrenches, slew_motors
 from tensegrity_gym.sim.engines import ENGINES, check_engine, register_engine
-from tensegrity_gym.sim.mjcf import robot_mjcf, site_name
+from tensegrity_gym.sim.mjcf import MIN_CONTACT_STEPS, robot_mjcf, site_name
 from tensegrity_gym.sim.mujoco_world import MujocoWorld
 
 if TYPE_CHECKING:
@@ -72,6 +72,33 @@ def test_the_mjcf_is_plain_xml_with_no_hand_written_part() -> None:
     root = ET.fromstring(robot_mjcf(THREE_BAR, time_step=0.002))
     assert root.get("model") == "three_bar"
     assert [b.get("name") for b in root.iter("body")] == [r.name for r in THREE_BAR.rods]
+
+
+def _solref(text: str) -> set[tuple[float, float]]:
+    return {
+        tuple(float(v) for v in g.get("solref", "").split())  # type: ignore[misc]
+        for g in ET.fromstring(text).iter("geom")
+    }
+
+
+def test_stiff_contacts_take_the_shortest_stable_time_constant() -> None:
+    (default,) = _solref(robot_mjcf(THREE_BAR, time_step=0.001))
+    (stiff,) = _solref(robot_mjcf(THREE_BAR, time_step=0.001, contact_steps=MIN_CONTACT_STEPS))
+    assert default[0] == pytest.approx(0.005) and stiff[0] == pytest.approx(0.002)
+    assert stiff[1] == default[1]  # the restitution's damping ratio is the description's
+    with pytest.raises(ValueError, match=r"^contact_steps must be at least 2\.0 .*got 1\.5$"):
+        robot_mjcf(THREE_BAR, time_step=0.001, contact_steps=1.5)
+
+
+def test_the_stiff_engine_sinks_the_robot_at_rest_less() -> None:
+    """``engine="mujoco_stiff"``: the same robot, its contacts 2.5 times stiffer in time
+    (about 6 times in force), so it rests less deep in the floor."""
+    d = THREE_BAR
+    sunk = []
+    for engine in ("mujoco", "mujoco_stiff"):
+        nodes = _nodes(d, *settled_pose(d, 0.001, 3.0, engine))
+        sunk.append(float(d.node_radii[np.argmin(nodes[:, 2])] - nodes[:, 2].min()))
+    assert 0.0 < sunk[1] < 0.5 * sunk[0]
 
 
 def _random_pose(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -158,7 +185,7 @@ def test_the_gait_rolls_alike_in_both_engines(seed: int) -> None:
 
 
 def test_engines_are_found_by_name_and_refused_in_one_line() -> None:
-    assert {"pybullet", "mujoco"} <= set(ENGINES.names())
+    assert {"pybullet", "mujoco", "mujoco_stiff"} <= set(ENGINES.names())
     with pytest.raises(ValueError, match=r"unknown engine 'bullet'.*pybullet"):
         check_engine("bullet")
     register_engine("missing", "no_such_module_here:World", install="pip install it")
