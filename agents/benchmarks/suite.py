@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import platform
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from agents.benchmarks.env import bench_env_speed, bench_env_speed_ratio, bench_memory
@@ -102,7 +103,7 @@ def run_benchmarks(
     ray_address: str | None = None,
     engines: bool = False,
     engine: str | None = None,
-    cross_world: bool = False,
+    cross_world: bool | Mapping[str, tuple[str, ...]] = False,
     streams: bool = False,
     lab_calibration: bool = False,
     training: bool = False,
@@ -116,7 +117,9 @@ def run_benchmarks(
     ``SubprocVecEnv`` and the sizing model's costs (:mod:`agents.benchmarks.ray_cluster`), and the
     estimation study's replays as Ray tasks on that cluster; with ``engines``, the physics
     engines side by side (:mod:`agents.benchmarks.engines`); with ``cross_world``, every
-    estimator on worlds it was not tuned in (:mod:`agents.benchmarks.cross_world`); with
+    estimator on worlds it was not tuned in (:mod:`agents.benchmarks.cross_world`; a
+    mapping gives :func:`~agents.benchmarks.cross_world.bench_cross_world` its
+    ``worlds`` and ``estimators``); with
     ``streams``, the UKF and the invariant EKF on a lab's imperfect sensor streams
     (:mod:`agents.benchmarks.streams`); with
     ``lab_calibration``, the UWB calibration at a lab's conditions
@@ -135,7 +138,8 @@ def run_benchmarks(
         if cross_world:
             from agents.benchmarks.cross_world import bench_cross_world
 
-            results["cross_world"] = bench_cross_world()
+            chosen: dict[str, Any] = dict(cross_world) if isinstance(cross_world, Mapping) else {}
+            results["cross_world"] = bench_cross_world(**chosen)
         if streams:
             from agents.benchmarks.streams import bench_streams
 

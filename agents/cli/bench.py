@@ -70,10 +70,20 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
     )
     bench.add_argument(
         "--cross-world",
-        action="store_true",
-        help="also score every estimator on worlds it was not tuned in: the other physics "
-        "engine and description error, 3 seeds, rolling and turning (needs "
-        "tensegrity-gym[mujoco])",
+        nargs="*",
+        default=None,
+        metavar="WORLD",
+        help="also score every estimator on worlds it was not tuned in (other_engine, "
+        "description_error, stiff_contacts), 3 seeds, rolling and turning; name worlds to "
+        "score only those beside own (needs tensegrity-gym[mujoco])",
+    )
+    bench.add_argument(
+        "--cross-world-estimators",
+        nargs="+",
+        default=None,
+        metavar="ESTIMATOR",
+        help="the estimators --cross-world scores (default: ukf, ukf_exact_lengths, "
+        "ukf_large, inekf, icp)",
     )
     bench.add_argument(
         "--streams",
@@ -114,7 +124,7 @@ def run_bench(args: argparse.Namespace) -> int:
         ray_address=args.ray,
         engines=args.engines,
         engine=args.engine,
-        cross_world=args.cross_world,
+        cross_world=_cross_world(args),
         streams=args.streams,
         lab_calibration=args.lab_calibration,
         training=args.training,
@@ -125,6 +135,29 @@ def run_bench(args: argparse.Namespace) -> int:
         Path(args.out).write_text(text + "\n")
     sys.stdout.write(text + "\n")
     return 0
+
+
+def _cross_world(args: argparse.Namespace) -> dict[str, tuple[str, ...]] | bool:
+    """``bench_cross_world``'s arguments from ``--cross-world`` and its estimators: the
+    named worlds with the own one (every world where none is named); False without it.
+    An unknown world or estimator is refused before any benchmark runs."""
+    from agents.benchmarks.cross_world import ESTIMATOR_ROBOTS, WORLDS
+
+    if args.cross_world is None:
+        if args.cross_world_estimators is not None:
+            raise ValueError("--cross-world-estimators needs --cross-world")
+        return False
+    for flag, names, known in (("--cross-world", args.cross_world, WORLDS),
+                               ("--cross-world-estimators", args.cross_world_estimators or (),
+                                ESTIMATOR_ROBOTS)):  # fmt: skip
+        unknown = [n for n in names if n not in known]
+        if unknown:
+            raise ValueError(f"{flag}: unknown {unknown[0]!r}; choose from {', '.join(known)}")
+    worlds = tuple(WORLDS) if not args.cross_world else ("own", *args.cross_world)
+    chosen: dict[str, tuple[str, ...]] = {"worlds": tuple(dict.fromkeys(worlds))}
+    if args.cross_world_estimators is not None:
+        chosen["estimators"] = tuple(dict.fromkeys(args.cross_world_estimators))
+    return chosen
 
 
 COMMANDS = (Command("bench", "measure env speed and memory; print JSON", add_bench, run_bench),)

@@ -21,6 +21,7 @@ MISTAKES = {
     "evaluate": ["evaluate", "{tmp}/no_run", "--out", "{tmp}/e"],
     "gait": ["gait", "--env", "tensegrity_gym/Nope-v0", "--out", "{tmp}/g"],
     "bench": ["bench", "--steps", "-3"],
+    "bench --cross-world": ["bench", "--cross-world", "stiff", "--steps", "10"],
     "record": ["record", "--policy", "{tmp}/no_run", "--out", "{tmp}/r", "--steps", "2"],
     "estimate": ["estimate", "{tmp}/no_bag", "--out", "{tmp}/x"],
     "import": ["import", "{tmp}/no_logs", "--map", "{tmp}/no_map.yaml", "--out", "{tmp}/b"],

@@ -34,6 +34,27 @@ def test_every_world_differs_and_each_row_has_its_figures() -> None:
     assert check["met"] == (check["value"] <= check["target"])
 
 
+def test_the_command_line_chooses_worlds_and_estimators() -> None:
+    """``bench --cross-world [WORLD ...] [--cross-world-estimators E ...]``: every world
+    with no name, else the own world and those named; unknown names refused."""
+    from agents.cli import build_parser
+    from agents.cli.bench import _cross_world
+
+    parser = build_parser()
+    assert _cross_world(parser.parse_args(["bench"])) is False
+    assert _cross_world(parser.parse_args(["bench", "--cross-world"])) == {"worlds": tuple(WORLDS)}
+    chosen = _cross_world(parser.parse_args(
+        ["bench", "--cross-world", "stiff_contacts", "--cross-world-estimators", "inekf", "icp"]
+    ))  # fmt: skip
+    assert chosen == {"worlds": ("own", "stiff_contacts"), "estimators": ("inekf", "icp")}
+    with pytest.raises(ValueError, match=r"--cross-world-estimators: unknown 'ekf'; choose from"):
+        _cross_world(parser.parse_args(
+            ["bench", "--cross-world", "--cross-world-estimators", "ekf"]
+        ))  # fmt: skip
+    with pytest.raises(ValueError, match="needs --cross-world"):
+        _cross_world(parser.parse_args(["bench", "--cross-world-estimators", "inekf"]))
+
+
 def test_nees_is_nan_without_a_covariance_and_near_one_for_the_ukf_at_home() -> None:
     run = record_face_transition("tensegrity_gym/ThreeBarRoll-v0", 0, 30, calibration="true")
     estimates = replay(run, UkfEstimator())
