@@ -132,6 +132,16 @@ class InekfConfig:
     """The base rod's endcaps in contact roll with its spin (the gyro's z): on the bench
     the mean drift fell from 11.8 % to 10.3 %; rolling the other rods' endcaps by
     their axes' turn (from the shape) made it worse (11.0 %)."""
+    flight_spin: bool = True
+    """Through a hop (no endcap sensed on the ground) the shape, in the base rod's
+    frame, turns about the rod against its gyro's z: the rod spins on its own axis,
+    about which no cable pulls, and the rest of the robot does not follow (the stiff
+    contacts' world, one-off check: the true shape turned 23-24 degrees a 0.1 s against
+    220-240 deg/s of gyro z). Without it the solver held the last spin in the rod's
+    frame, and the shape landed up to 0.9 m off. Not where a gyro reading clipped since
+    the last solve (its z then undercounts the turn). Cross-world drift, stiff / MuJoCo
+    / own / description error: 13.4 / 5.3 / 2.5 / 5.3 % -> 9.9 / 5.7 / 2.5 / 5.1 %
+    (replays of the bench's runs at a456103)."""
     initial_rotation_std: float = 0.02
     """rad: roll and pitch from the accelerometer at rest."""
     initial_yaw_std: float = 0.2
@@ -244,7 +254,7 @@ class InekfConfig:
             k = getattr(self, name)
             if k is not None and not (isinstance(k, (int, float)) and math.isfinite(k) and k >= 0):
                 raise ValueError(f"InekfConfig.{name} must be a number >= 0 or None, got {k!r}")
-        for name in ("reanchor_slipped", "rolling_endcaps", "floor_correction"):
+        for name in ("reanchor_slipped", "rolling_endcaps", "floor_correction", "flight_spin"):
             flag = getattr(self, name)
             if not isinstance(flag, bool):
                 raise ValueError(f"InekfConfig.{name} must be True or False, got {flag!r}")

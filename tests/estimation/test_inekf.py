@@ -533,6 +533,38 @@ def test_the_base_rods_endcaps_in_contact_roll_with_its_spin() -> None:
 
 
 @pytest.mark.parametrize(
+    ("flight_spin", "on_ground", "clipped", "turns"),
+    [(True, False, False, True), (False, False, False, False), (True, True, False, False),
+     (True, False, True, False)],
+)  # fmt: skip
+def test_in_a_hop_the_shape_turns_against_the_base_rods_spin(
+    flight_spin: bool, on_ground: bool, clipped: bool, turns: bool
+) -> None:
+    """No endcap on the ground: the base rod spins on its axis (2 rad/s for 0.05 s) and
+    the rest does not follow, so the shape in the rod's frame turns by -0.1 rad about
+    its axis before the next solve; not with an endcap sensed on the ground, a clipped
+    gyro or ``flight_spin`` off."""
+    est, _, _ = _resting(InekfConfig(flight_spin=flight_spin))
+    f = est.filter
+    assert f is not None
+    est._sensed = np.zeros(est.description.n_nodes, dtype=bool)
+    est._sensed[3] = on_ground
+    est._gyro = f.gyro_bias + np.array([0.0, 0.0, 2.0])
+    est._gyro_clipped = clipped
+    for _ in range(5):
+        est._propagate(0.01)
+    before = est.shape.copy()
+    est._turn_in_flight()
+    angle = -0.1 if turns else 0.0
+    c, s = np.cos(angle), np.sin(angle)
+    expected = before @ np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(est.shape, expected, atol=1e-12)
+    base = est.description.rod_nodes[0]
+    np.testing.assert_allclose(est.shape[base], before[base], atol=1e-12)  # on the axis
+    assert est._spin_turn == 0.0 and not est._spin_clipped  # counted from this solve on
+
+
+@pytest.mark.parametrize(
     ("offset", "reanchored"), [((0.5, 0.0, 0.0), True), ((0.0, 0.0, 0.5), False)]
 )
 def test_a_contact_that_slides_along_the_ground_touches_down_again(
