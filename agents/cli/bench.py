@@ -23,26 +23,14 @@ __all__ = ["COMMANDS"]
 
 
 def add_bench(bench: argparse.ArgumentParser) -> None:
-    """``bench``'s options: the steps of each measurement (0 skips one), the studies."""
+    """``bench``'s options: the steps of each measurement (0 skips one), the studies
+    (:func:`_add_studies`), the engine, Ray and the output file."""
     bench.add_argument("--steps", type=positive_int, default=2000, help="env steps timed per env")
     bench.add_argument(
         "--memory-steps",
         type=count,
         default=100_000,
         help="env steps of the memory test (0: skip)",
-    )
-    bench.add_argument(
-        "--estimation",
-        action="store_true",
-        help="also run the estimation study (Caluwaerts et al. 2016 on SUPERball), the UKF's "
-        "speed against filterpy's, the ICP tracker's figures and Tong et al. 2024's table "
-        "(the invariant EKF on the 1.45 m robot, beside the UKF)",
-    )
-    bench.add_argument(
-        "--sim2real",
-        action="store_true",
-        help="also run the UKF in randomised worlds (none, mild, strong) and the "
-        "identification of a 3-bar robot recorded 30 %% off its description",
     )
     bench.add_argument(
         "--bag-minutes",
@@ -61,6 +49,27 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
         type=non_negative_float,
         default=0.0,
         help="minutes of emulated operation watched for memory and latency growth",
+    )
+    _add_studies(bench)
+    add_engine(bench)
+    add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
+    bench.add_argument("--out", default=None, help="also write the JSON to this file")
+
+
+def _add_studies(bench: argparse.ArgumentParser) -> None:
+    """``bench``'s optional studies, each run only when asked for."""
+    bench.add_argument(
+        "--estimation",
+        action="store_true",
+        help="also run the estimation study (Caluwaerts et al. 2016 on SUPERball), the UKF's "
+        "speed against filterpy's, the ICP tracker's figures and Tong et al. 2024's table "
+        "(the invariant EKF on the 1.45 m robot, beside the UKF)",
+    )
+    bench.add_argument(
+        "--sim2real",
+        action="store_true",
+        help="also run the UKF in randomised worlds (none, mild, strong) and the "
+        "identification of a 3-bar robot recorded 30 %% off its description",
     )
     bench.add_argument(
         "--engines",
@@ -104,9 +113,6 @@ def add_bench(bench: argparse.ArgumentParser) -> None:
         help="also time PPO and SAC training with the UKF in the loop (4,096 steps each): "
         "env steps/s and the shares of physics, sensors, estimator and policy update",
     )
-    add_engine(bench)
-    add_ray(bench, "measure the Ray vec env (the JSON's ray) and run --estimation's jobs as tasks")
-    bench.add_argument("--out", default=None, help="also write the JSON to this file")
 
 
 def run_bench(args: argparse.Namespace) -> int:
