@@ -29,6 +29,7 @@ __all__ = [
     "port",
     "positive_float",
     "positive_int",
+    "tempo",
 ]
 
 
@@ -87,6 +88,17 @@ def positive_float(text: str) -> float:
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
+
+
+def tempo(text: str) -> list[int]:
+    """An argparse type: a gait period's ``HOLD/SETTLE`` control steps, whole numbers,
+    the hold > 0 and the settle >= 0."""
+    parts = text.split("/")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts) or int(parts[0]) < 1:
+        raise argparse.ArgumentTypeError(
+            f"must be HOLD/SETTLE control steps (whole numbers, HOLD > 0), got {text!r}"
+        )
+    return [int(parts[0]), int(parts[1])]
 
 
 def non_negative_float(text: str) -> float:

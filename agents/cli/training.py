@@ -20,6 +20,7 @@ from agents.cli.arguments import (
     pairs,
     positive_float,
     positive_int,
+    tempo,
 )
 from agents.cli.errors import log, one_line
 
@@ -148,6 +149,11 @@ def add_train(tr: argparse.ArgumentParser) -> None:
         "choices); default: actions are the rest-length targets",
     )  # fmt: skip
     tr.add_argument(
+        "--move-tempos", nargs="+", type=tempo, default=None, metavar="HOLD/SETTLE",
+        help="with --moves: a choice also sets its period's tempo, the gait's own or one "
+        "of these (hold and settle control steps, e.g. 15/0)",
+    )  # fmt: skip
+    tr.add_argument(
         "--env-kwargs", type=env_kwarg, nargs="+", action="extend", default=None,
         metavar="KEY:VALUE",
         help="more gym.make arguments for training, as rl-zoo3 takes them (e.g. the "
@@ -201,7 +207,7 @@ def training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 
 _SETTINGS = ("config", "hyperparams", "env_kwargs", "residual_gait", "randomization",
-             "n_envs", "engine", "preset", "moves")  # fmt: skip
+             "n_envs", "engine", "preset", "moves", "move_tempos")  # fmt: skip
 """``train``'s options that a resumed run takes from its own config instead."""
 
 
@@ -256,6 +262,7 @@ def _train_or_resume(args: argparse.Namespace) -> Path:
         ray_address=args.ray,
         workers=args.workers,
         moves=args.moves,
+        move_tempos=args.move_tempos,
     )
 
 

@@ -317,7 +317,8 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
     def predict(obs: NDArray[np.float32]) -> Any:
         return model.predict(normalise(obs), deterministic=True)[0]
 
-    act, new_episode, shape = _acting(env_id, actions, config.get("moves"), predict)
+    moves = (config.get("moves"), config.get("move_tempos"))
+    act, new_episode, shape = _acting(env_id, actions, moves, predict)
     if model.observation_space.shape != shape:
         raise ValueError(
             f"{model_file}: the model observes {model.observation_space.shape}, "
@@ -335,26 +336,27 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
 def _acting(
     env_id: str,
     actions: dict[str, Any],
-    moves: str | None,
+    moves: tuple[str | None, list[list[int]] | None],
     predict: Callable[[NDArray[np.float32]], Any],
 ) -> tuple[Callable[[NDArray[np.float32]], NDArray[np.float32]], Callable[[int], None],
            tuple[int, ...] | None]:  # fmt: skip
     """A trained model's ``predict`` as the env's policy: the act, what it does before
     an episode, and the observation shape the model must have. With ``moves`` (a run of
-    ``train --moves``), the model picks among the steering gait's moves as each period
-    begins (:class:`~tensegrity_gym.envs.moves.MovePolicy`) and the gait commands the
-    steps."""
+    ``train --moves``: the gait's name and the tempos), the model picks among the
+    steering gait's moves (and tempos) as each period begins
+    (:class:`~tensegrity_gym.envs.moves.MovePolicy`) and the gait commands the steps."""
     env = gym.make(env_id, estimator="oracle", **actions)
     try:
-        if moves is None:
+        gait, tempos = moves
+        if gait is None:
             shape = env.observation_space.shape
 
             def act(obs: NDArray[np.float32]) -> NDArray[np.float32]:
                 return np.asarray(predict(obs), dtype=np.float32)
 
             return act, _no_reset, shape
-        chosen = MoveChoice(env, gait=moves)
-        policy = MovePolicy(chosen.gait, lambda seen: int(predict(seen)))
+        chosen = MoveChoice(env, gait=gait, tempos=tempos)
+        policy = MovePolicy(chosen.gait, lambda seen: int(predict(seen)), tempos)
         return policy, policy.reset, chosen.observation_space.shape
     finally:
         env.close()

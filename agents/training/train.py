@@ -177,6 +177,9 @@ class TrainConfig:
     moves: str | None = None
     """A steering gait's name: the policy picks among its moves, a step a gait period
     (:class:`~tensegrity_gym.envs.moves.MoveChoice`); None: the env's own actions."""
+    move_tempos: list[list[int]] | None = None
+    """With ``moves``: the (hold, settle) control steps a period may also take, beside
+    the gait's own (MoveChoice's ``tempos``); None: the gait's own alone."""
 
 
 def qualified_id(env_id: str) -> str:
@@ -211,12 +214,13 @@ def make_training_env(
     monitor_dir: Path | None,
     workers: int | None = None,
     moves: str | None = None,
+    move_tempos: list[list[int]] | None = None,
 ) -> VecEnv:
     """``n_envs`` Monitor-wrapped envs, in subprocesses where there is more than one core;
     with ``workers``, on that many Ray actors of the connected cluster
     (:class:`agents.training.cluster.vec_env.RayVecEnv`), the Monitor log kept here;
     with ``moves``, each under :class:`~tensegrity_gym.envs.moves.MoveChoice` of that
-    gait (not on Ray)."""
+    gait and ``move_tempos`` (not on Ray)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
@@ -248,7 +252,7 @@ def make_training_env(
         monitor_dir=str(monitor_dir) if monitor_dir is not None else None,
         vec_env_cls=SubprocVecEnv if use_processes else DummyVecEnv,
         wrapper_class=None if moves is None else MoveChoice,
-        wrapper_kwargs=None if moves is None else {"gait": moves},
+        wrapper_kwargs=None if moves is None else {"gait": moves, "tempos": move_tempos},
     )
 
 
@@ -270,6 +274,7 @@ def train(
     ray_address: str | None = None,
     workers: int | None = None,
     moves: str | None = None,
+    move_tempos: Sequence[Sequence[int]] | None = None,
 ) -> Path:
     """Train, and return the path of the saved model (``out/model.zip``).
 
@@ -294,15 +299,20 @@ def train(
     ``moves`` (a steering gait's name, PPO only): the policy picks among the gait's
     moves of the support face, a step a gait period
     (:class:`~tensegrity_gym.envs.moves.MoveChoice`): ``timesteps`` and the
-    hyperparameters' step counts then count those choices.
+    hyperparameters' step counts then count those choices. ``move_tempos`` ((hold,
+    settle) control steps) lets a choice set its period's tempo too.
     """
     if workers is not None and ray_address is None:
         raise ValueError("workers are Ray actors: give the cluster's address (--ray)")
     config = _checked_config(
         env_id, algo, estimator, timesteps, seed, n_envs, config_file, hyperparams, env_kwargs
     )
+    if move_tempos is not None and moves is None:
+        raise ValueError("train: --move-tempos sets the tempos of --moves: give --moves too")
     if moves is not None:
-        config = replace(config, moves=check_moves(config, moves))
+        tempos = None if move_tempos is None else [list(t) for t in move_tempos]
+        config = replace(config, moves=moves, move_tempos=tempos)
+        check_moves(config)
         if config.hyperparams.get("use_sde"):  # the shipped configs' continuous exploration
             log.info("--moves: gSDE explores continuous actions only; off for this run")
             params = {k: v for k, v in config.hyperparams.items() if k != "sde_sample_freq"}
@@ -390,9 +400,10 @@ def _checked_config(
     return TrainConfig(env_id, algo, estimator, total, seed, envs, dict(params), kwargs)
 
 
-def check_moves(config: TrainConfig, moves: str) -> str:
-    """``moves`` where ``config`` can train on it (PPO, absolute actions, a gait of the
-    id's robot with several moves a face); ValueError in one line where not."""
+def check_moves(config: TrainConfig) -> None:
+    """ValueError in one line where ``config``'s ``moves`` (and ``move_tempos``) cannot
+    be trained on: PPO, absolute actions, a gait of the id's robot with several moves a
+    face, tempos the gait can run."""
     import gymnasium as gym
 
     from tensegrity_gym.envs.moves import MoveChoice
@@ -406,12 +417,11 @@ def check_moves(config: TrainConfig, moves: str) -> str:
         raise ValueError("train: --moves picks the gait's own moves; leave out --residual-gait")
     env = gym.make(config.env_id, estimator="oracle")
     try:
-        MoveChoice(env, gait=moves)
+        MoveChoice(env, gait=str(config.moves), tempos=config.move_tempos)
     except (ValueError, KeyError) as err:
-        raise ValueError(f"train: --moves {moves}: {err}") from None
+        raise ValueError(f"train: --moves {config.moves}: {err}") from None
     finally:
         env.close()
-    return moves
 
 
 def _defaults(algo: str) -> dict[str, Any]:
@@ -430,7 +440,8 @@ def _run(config: TrainConfig, out: Path, options: RunOptions, workers: int | Non
     out.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(1)  # small networks: threads only contend with the env workers
     venv = make_training_env(config.env_id, config.n_envs, config.seed, config.env_kwargs,
-                             out / "monitor", workers, config.moves)  # fmt: skip
+                             out / "monitor", workers, config.moves,
+                             config.move_tempos)  # fmt: skip
     venv = _normalized(venv, params, options.start)
     start = options.start
     model = _make_model(config, params, venv, out) if start is None else _load_model(

@@ -15,6 +15,14 @@ rank 0 is the gait; one that learns which modelled moves do not happen, or pay l
 than the model says, from the estimated state can do better. The ranks make the gait a
 policy's natural start: a bias on rank 0's logit.
 
+With ``tempos`` the action also sets the period's tempo, its (hold, settle) control
+steps: action ``a`` takes rank ``a % most`` at tempo ``a // most`` of the gait's own
+(0) followed by those given; a step is then that period. A flip ends well before the
+gait's 35 steps on most faces, and a shorter period changes the flip itself: from a
+given state some moves go further, faster, at one tempo, others at another, which the
+gait's table (measured at its own tempo, from rest) cannot say. Action 0 is the gait,
+at any ``tempos``.
+
 Wrap an env made with absolute actions: ``MoveChoice(gym.make(ID))``. gym.make's time
 limit, beneath the wrapper, still counts control steps: the episode lasts as long in
 seconds as the id's. ``tensegrity-gym train --moves steer`` trains on it. A policy so
@@ -34,17 +42,20 @@ from numpy.typing import NDArray
 from tensegrity_gym.tasks.gaits import FaceGait
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
+    from collections.abc import Callable, Sequence
 
     from tensegrity_gym.envs.tensegrity_env import TensegrityEnv
+    from tensegrity_gym.tasks.gaits import PeriodChoice, Tempo
 
 __all__ = [
     "MOVE_FEATURES",
     "MoveChoice",
     "MovePolicy",
+    "check_tempos",
     "entry_of_rank",
     "move_features",
     "observe_moves",
+    "period_choice",
     "ranked_moves",
 ]
 
@@ -69,6 +80,37 @@ def entry_of_rank(order: NDArray[np.intp], rank: int) -> int:
     """The face's entry that rank ``rank`` (modulo the face's count) names in ``order``
     (:func:`ranked_moves`)."""
     return int(order[int(rank) % len(order)])
+
+
+def check_tempos(gait: FaceGait, tempos: Sequence[Sequence[int]] | None) -> tuple[Tempo, ...]:
+    """``tempos`` as (hold, settle) pairs of control steps where ``gait`` can run them
+    (whole numbers, the hold at least 1 and the ramp's steps, the settle at least 0);
+    ValueError in one line naming the first that is not."""
+    checked = []
+    for tempo in tempos or ():
+        pair = tuple(tempo)
+        if (
+            len(pair) != 2
+            or not all(isinstance(k, (int, np.integer)) and not isinstance(k, bool) for k in pair)
+            or pair[0] < max(1, gait.ramp_steps)
+            or pair[1] < 0
+        ):
+            raise ValueError(
+                f"tempo {tempo!r}: a tempo is (hold, settle) control steps, whole numbers, "
+                f"the hold at least {max(1, gait.ramp_steps)} (the gait's ramp), the settle >= 0"
+            )
+        checked.append((int(pair[0]), int(pair[1])))
+    return tuple(checked)
+
+
+def period_choice(
+    order: NDArray[np.intp], action: int, most: int, tempos: Sequence[Tempo]
+) -> PeriodChoice:
+    """The face's entry and the period's tempo that ``action`` names: rank
+    ``action % most`` in ``order`` (:func:`ranked_moves`), tempo ``action // most`` of
+    the gait's own (0, None) followed by ``tempos``."""
+    tempo_index, rank = divmod(int(action), most)
+    return entry_of_rank(order, rank), (None, *tempos)[tempo_index]
 
 
 def move_features(
@@ -108,17 +150,25 @@ class MovePolicy:
     Args:
         gait: the steering gait the policy was trained on (its own instance: it keeps
             the period under way and the moves stalled).
-        pick: the trained policy, (o + 4 * most,) observation to a rank.
+        pick: the trained policy, (o + 4 * most,) observation to an action of
+            :class:`MoveChoice` (a rank, and with ``tempos`` a tempo).
+        tempos: the tempos it was trained with (:class:`MoveChoice`'s ``tempos``).
     """
 
-    def __init__(self, gait: FaceGait, pick: Callable[[NDArray[np.float32]], int]) -> None:
+    def __init__(
+        self,
+        gait: FaceGait,
+        pick: Callable[[NDArray[np.float32]], int],
+        tempos: Sequence[Sequence[int]] | None = None,
+    ) -> None:
         self.gait, self.pick = gait, pick
         self.most = gait.most_moves
+        self.tempos = check_tempos(gait, tempos)
         gait.chooser = self._choose
 
-    def _choose(self, observation: NDArray[np.float32]) -> int:
+    def _choose(self, observation: NDArray[np.float32]) -> PeriodChoice:
         seen, order = observe_moves(self.gait, observation, self.most)
-        return entry_of_rank(order, self.pick(seen))
+        return period_choice(order, self.pick(seen), self.most, self.tempos)
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         """The command for this control step, (m,) in [-1, 1]."""
@@ -139,10 +189,18 @@ class MoveChoice(
     Args:
         env: a simulated or robot env of this package with absolute actions.
         gait: the robot's steering gait's name (a gait with several entries a face).
+        tempos: (hold, settle) control steps a period may also take, beside the gait's
+            own (see the module's docstring); None: the gait's own alone.
     """
 
-    def __init__(self, env: gym.Env[Any, Any], gait: str = "steer") -> None:
-        gym.utils.RecordConstructorArgs.__init__(self, gait=gait)  # gym.make can remake it
+    def __init__(
+        self,
+        env: gym.Env[Any, Any],
+        gait: str = "steer",
+        tempos: Sequence[Sequence[int]] | None = None,
+    ) -> None:
+        # gym.make can remake it
+        gym.utils.RecordConstructorArgs.__init__(self, gait=gait, tempos=tempos)
         gym.Wrapper.__init__(self, env)
         inner: TensegrityEnv = env.unwrapped  # type: ignore[assignment]
         if getattr(inner, "action_base", None) is not None:
@@ -155,7 +213,8 @@ class MoveChoice(
                 "entry a face: there is nothing to choose (give a steering gait)"
             )
         self.most = self.gait.most_moves
-        self.action_space = spaces.Discrete(self.most)
+        self.tempos = check_tempos(self.gait, tempos)
+        self.action_space = spaces.Discrete(self.most * (1 + len(self.tempos)))
         base = env.observation_space
         assert isinstance(base, spaces.Box)
         low = np.concatenate([base.low, np.repeat([-_MOST_PROGRESS, 0, 0, 0], self.most)])
@@ -180,19 +239,20 @@ class MoveChoice(
     def step(
         self, action: np.int64
     ) -> tuple[NDArray[np.float32], SupportsFloat, bool, bool, dict[str, Any]]:
-        """Run one gait period with entry ``action`` of the support face: the last
-        observation, the period's summed reward, and the last step's flags and info
-        (``info["period_steps"]``: the control steps run, fewer where the episode
-        ended within the period)."""
+        """Run one gait period with the entry of the support face and the tempo that
+        ``action`` names: the last observation, the period's summed reward, and the last
+        step's flags and info (``info["period_steps"]``: the control steps run, fewer
+        where the episode ended within the period)."""
         if self._last is None:
             raise RuntimeError("MoveChoice: call reset() before step()")
         observation, order = self._last, self._order
-        self.gait.begin(observation, entry_of_rank(order, int(action)))
+        entry, tempo = period_choice(order, int(action), self.most, self.tempos)
+        self.gait.begin(observation, entry, tempo)
         total, steps = 0.0, 0
         terminated = truncated = False
         info: dict[str, Any] = {}
         beneath = cast("gym.Env[NDArray[np.float32], NDArray[np.float32]]", self.env)
-        for _ in range(self.gait.period_steps):
+        for _ in range(self.gait.period_steps if tempo is None else sum(tempo)):
             observation, reward, terminated, truncated, info = beneath.step(self.gait(observation))
             total += float(reward)
             steps += 1

@@ -55,6 +55,8 @@ if TYPE_CHECKING:
 __all__ = [
     "FaceGait",
     "GaitTable",
+    "PeriodChoice",
+    "Tempo",
     "face_yaw",
     "gait_table",
     "lowest_face",
@@ -68,6 +70,13 @@ _YAW_BIN = np.radians(2.0)
 
 GaitTable = dict[tuple[int, ...], tuple[tuple[int, ...], str]]
 """Face (sorted node indices) -> (actuated cable indices to contract, "hold" | "out")."""
+
+Tempo = tuple[int, int]
+"""A gait period's (hold, settle) control steps."""
+
+PeriodChoice = tuple[int, "Tempo | None"]
+"""What a :attr:`FaceGait.chooser` picks as a period begins: the support face's entry
+(an index, modulo the face's count) and the period's tempo (None: the gait's own)."""
 
 
 def gait_table(description: RobotDescription, gait: str = DEFAULT_GAIT) -> GaitTable:
@@ -256,9 +265,9 @@ class FaceGait:
             raise ValueError(f"horizon must be an integer >= 1 (periods), got {horizon!r}")
         self.horizon = horizon
         """Gait periods a steering gait looks ahead (:meth:`score`)."""
-        self.chooser: Callable[[NDArray[np.float32]], int] | None = None
-        """Picks the support face's entry as each period begins (the index
-        :meth:`begin` takes), from the observation; None: the gait chooses."""
+        self.chooser: Callable[[NDArray[np.float32]], PeriodChoice] | None = None
+        """Picks the support face's entry and the period's tempo as each period begins
+        (what :meth:`begin` takes), from the observation; None: the gait chooses."""
         lo, hi, _ = description.motor_limits
         rest_action = 2.0 * (description.rest_lengths[description.actuated] - lo) / (hi - lo) - 1.0
         self.hold_action = rest_action.astype(np.float32)
@@ -358,7 +367,8 @@ class FaceGait:
         chooses its action (:meth:`begin`)."""
         command = next(self._period, None)
         if command is None:
-            self.begin(observation, None if self.chooser is None else self.chooser(observation))
+            index, tempo = (None, None) if self.chooser is None else self.chooser(observation)
+            self.begin(observation, index, tempo)
             command = next(self._period)
         self._commanded = command
         return command.copy()
@@ -373,9 +383,13 @@ class FaceGait:
         """The most entries any face of the table has."""
         return max(len(c) for c in self._choices.values())
 
-    def begin(self, observation: NDArray[np.float32], index: int | None = None) -> None:
+    def begin(
+        self, observation: NDArray[np.float32], index: int | None = None, tempo: Tempo | None = None
+    ) -> None:
         """Begin a period on the support face of ``observation``: with its entry
-        ``index`` (modulo the face's count), or (None) the one the gait chooses. Where
+        ``index`` (modulo the face's count), or (None) the one the gait chooses; held
+        and settled for ``tempo``'s (hold, settle) control steps (hold at least the
+        ramp's), or (None) the gait's own. Where
         the period before began on the same face, its move stalled (the model's move did
         not happen from this state), and the gait does not choose that entry again on
         the face this episode, until every one of its entries has stalled."""
@@ -387,7 +401,11 @@ class FaceGait:
         if index is not None:
             chosen = int(index) % len(self._choices[key])
         self._last = (key, chosen) if key == face else None
-        steps = (self.hold_steps, self.settle_steps, self.ramp_steps)
+        hold, settle = (self.hold_steps, self.settle_steps) if tempo is None else tempo
+        if not (self.ramp_steps <= hold and hold >= 1 and settle >= 0):
+            raise ValueError(f"a period's tempo needs hold >= max(1, ramp {self.ramp_steps}) "
+                             f"and settle >= 0, got {tempo}")  # fmt: skip
+        steps = (hold, settle, self.ramp_steps)
         action = self._choices[key][chosen].action
         self._period = period_commands(self._commanded, action, self.hold_action, steps)
 

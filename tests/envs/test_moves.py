@@ -74,26 +74,46 @@ def test_check_env_and_bad_wrapping() -> None:
         MoveChoice(gym.make(GOTO, estimator="oracle"), gait="forward")
 
 
-def _second_if_open(observation: np.ndarray, most: int) -> int:
-    """A choice that is not the gait's: rank 1 where the face offers it, as the
-    observation's presence flags say (a rule of the observation alone)."""
+SHORT = (15, 0)
+"""A tempo beside the gait's own (25, 10): hold 15 control steps, no settle."""
+
+
+def test_a_tempo_sets_the_periods_length_and_bad_tempos_are_refused() -> None:
+    """With ``tempos``, action ``most * t + r`` runs rank r for tempo t's hold and
+    settle (t = 0: the gait's own); a tempo the gait cannot run is refused in one line."""
+    moved = MoveChoice(gym.make(GOTO, estimator="oracle"), tempos=[SHORT])
+    assert moved.action_space.n == 2 * moved.most
+    moved.reset(seed=2)
+    assert moved.step(moved.most)[4]["period_steps"] == sum(SHORT)
+    assert moved.step(0)[4]["period_steps"] == moved.gait.period_steps == 35
+    for tempo in [(5, 0), (15, -1), (15,), (15.0, 2)]:  # the ramp is 11 steps
+        with pytest.raises(ValueError, match=r"tempo .*\(hold, settle\) control steps"):
+            MoveChoice(gym.make(GOTO, estimator="oracle"), tempos=[tempo])
+
+
+def _second_if_open(observation: np.ndarray, most: int, period: int) -> int:
+    """A choice that is not the gait's on even periods: rank 1 at the short tempo where
+    the face offers it, as the observation's presence flags say; else the gait's own
+    choice at its own tempo."""
     present = observation[-MOVE_FEATURES * most :].reshape(MOVE_FEATURES, most)[1]
-    return 1 if present[1] == 1.0 else 0
+    return most + 1 if present[1] == 1.0 and period % 2 == 0 else 0
 
 
 def test_a_move_policy_drives_the_env_step_by_step_as_the_wrapper() -> None:
-    """The same rule of MoveChoice's observation, acting through the wrapper (a step a
-    period) and through MovePolicy on the env beneath (a step a control step, as
-    evaluate runs it): the same true path, bit for bit, and the same choices."""
-    moved = MoveChoice(gym.make(GOTO, estimator="oracle", max_episode_steps=140))
+    """The same rule of MoveChoice's observation (ranks and tempos), acting through the
+    wrapper (a step a period) and through MovePolicy on the env beneath (a step a
+    control step, as evaluate runs it): the same true path, bit for bit, and the same
+    choices."""
+    moved = MoveChoice(gym.make(GOTO, estimator="oracle", max_episode_steps=140), tempos=[SHORT])
     obs, _ = moved.reset(seed=5)
-    wrapped_path, ranks, done = [], [], False
+    wrapped_path, ranks, lengths, done = [], [], [], False
     while not done:
-        ranks.append(_second_if_open(obs, moved.most))
+        ranks.append(_second_if_open(obs, moved.most, len(ranks)))
         obs, _, terminated, truncated, info = moved.step(ranks[-1])
         wrapped_path.append(info["com_true"])
+        lengths.append(info["period_steps"])
         done = terminated or truncated
-    assert 1 in ranks  # the rule left the gait's own choice somewhere
+    assert {0, moved.most + 1} <= set(ranks)  # both tempos, the gait's choice left
 
     env = gym.make(GOTO, estimator="oracle", max_episode_steps=140)
     inner = env.unwrapped
@@ -101,10 +121,10 @@ def test_a_move_policy_drives_the_env_step_by_step_as_the_wrapper() -> None:
     picked: list[int] = []
 
     def pick(seen: np.ndarray) -> int:
-        picked.append(_second_if_open(seen, gait.most_moves))
+        picked.append(_second_if_open(seen, gait.most_moves, len(picked)))
         return picked[-1]
 
-    policy = MovePolicy(gait, pick)
+    policy = MovePolicy(gait, pick, tempos=[SHORT])
     policy.reset()
     obs, _ = env.reset(seed=5)
     path, done = [], False
@@ -113,6 +133,6 @@ def test_a_move_policy_drives_the_env_step_by_step_as_the_wrapper() -> None:
         path.append(info["com_true"])
         done = terminated or truncated
     assert picked == ranks
-    period = moved.gait.period_steps
-    ends = [min((k + 1) * period, len(path)) - 1 for k in range(len(ranks))]
+    assert sum(lengths) == len(path) == 140
+    ends = np.cumsum(lengths) - 1
     np.testing.assert_array_equal(np.array(wrapped_path), np.array(path)[ends])
