@@ -154,6 +154,11 @@ def add_train(tr: argparse.ArgumentParser) -> None:
         "of these (hold and settle control steps, e.g. 15/0)",
     )  # fmt: skip
     tr.add_argument(
+        "--move-ranks", type=positive_int, default=None, metavar="K",
+        help="with --moves: a choice picks among the gait's first K ranks (1: the gait's "
+        "own move, the policy setting the tempo); default: every entry of a face",
+    )  # fmt: skip
+    tr.add_argument(
         "--env-kwargs", type=env_kwarg, nargs="+", action="extend", default=None,
         metavar="KEY:VALUE",
         help="more gym.make arguments for training, as rl-zoo3 takes them (e.g. the "
@@ -207,7 +212,8 @@ def training_env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 
 _SETTINGS = ("config", "hyperparams", "env_kwargs", "residual_gait", "randomization",
-             "n_envs", "engine", "preset", "moves", "move_tempos")  # fmt: skip
+             "n_envs", "engine", "preset", "moves", "move_tempos",
+             "move_ranks")  # fmt: skip
 """``train``'s options that a resumed run takes from its own config instead."""
 
 
@@ -263,6 +269,7 @@ def _train_or_resume(args: argparse.Namespace) -> Path:
         workers=args.workers,
         moves=args.moves,
         move_tempos=args.move_tempos,
+        move_ranks=args.move_ranks,
     )
 
 

@@ -317,7 +317,7 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
     def predict(obs: NDArray[np.float32]) -> Any:
         return model.predict(normalise(obs), deterministic=True)[0]
 
-    moves = (config.get("moves"), config.get("move_tempos"))
+    moves = (config.get("moves"), config.get("move_tempos"), config.get("move_ranks"))
     act, new_episode, shape = _acting(env_id, actions, moves, predict)
     if model.observation_space.shape != shape:
         raise ValueError(
@@ -336,18 +336,18 @@ def load_policy(run_dir: Path, name: str | None = None) -> LoadedPolicy:
 def _acting(
     env_id: str,
     actions: dict[str, Any],
-    moves: tuple[str | None, list[list[int]] | None],
+    moves: tuple[str | None, list[list[int]] | None, int | None],
     predict: Callable[[NDArray[np.float32]], Any],
 ) -> tuple[Callable[[NDArray[np.float32]], NDArray[np.float32]], Callable[[int], None],
            tuple[int, ...] | None]:  # fmt: skip
     """A trained model's ``predict`` as the env's policy: the act, what it does before
     an episode, and the observation shape the model must have. With ``moves`` (a run of
-    ``train --moves``: the gait's name and the tempos), the model picks among the
+    ``train --moves``: the gait's name, the tempos and the ranks), the model picks among the
     steering gait's moves (and tempos) as each period begins
     (:class:`~tensegrity_gym.envs.moves.MovePolicy`) and the gait commands the steps."""
     env = gym.make(env_id, estimator="oracle", **actions)
     try:
-        gait, tempos = moves
+        gait, tempos, ranks = moves
         if gait is None:
             shape = env.observation_space.shape
 
@@ -355,8 +355,8 @@ def _acting(
                 return np.asarray(predict(obs), dtype=np.float32)
 
             return act, _no_reset, shape
-        chosen = MoveChoice(env, gait=gait, tempos=tempos)
-        policy = MovePolicy(chosen.gait, lambda seen: int(predict(seen)), tempos)
+        chosen = MoveChoice(env, gait, tempos, ranks)
+        policy = MovePolicy(chosen.gait, lambda seen: int(predict(seen)), tempos, ranks)
         return policy, policy.reset, chosen.observation_space.shape
     finally:
         env.close()

@@ -180,6 +180,9 @@ class TrainConfig:
     move_tempos: list[list[int]] | None = None
     """With ``moves``: the (hold, settle) control steps a period may also take, beside
     the gait's own (MoveChoice's ``tempos``); None: the gait's own alone."""
+    move_ranks: int | None = None
+    """With ``moves``: how many of the gait's ranks a choice picks among (MoveChoice's
+    ``ranks``); None: all."""
 
 
 def qualified_id(env_id: str) -> str:
@@ -215,12 +218,13 @@ def make_training_env(
     workers: int | None = None,
     moves: str | None = None,
     move_tempos: list[list[int]] | None = None,
+    move_ranks: int | None = None,
 ) -> VecEnv:
     """``n_envs`` Monitor-wrapped envs, in subprocesses where there is more than one core;
     with ``workers``, on that many Ray actors of the connected cluster
     (:class:`agents.training.cluster.vec_env.RayVecEnv`), the Monitor log kept here;
     with ``moves``, each under :class:`~tensegrity_gym.envs.moves.MoveChoice` of that
-    gait and ``move_tempos`` (not on Ray)."""
+    gait, ``move_tempos`` and ``move_ranks`` (not on Ray)."""
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecMonitor
 
@@ -252,7 +256,9 @@ def make_training_env(
         monitor_dir=str(monitor_dir) if monitor_dir is not None else None,
         vec_env_cls=SubprocVecEnv if use_processes else DummyVecEnv,
         wrapper_class=None if moves is None else MoveChoice,
-        wrapper_kwargs=None if moves is None else {"gait": moves, "tempos": move_tempos},
+        wrapper_kwargs=None
+        if moves is None
+        else {"gait": moves, "tempos": move_tempos, "ranks": move_ranks},
     )
 
 
@@ -275,6 +281,7 @@ def train(
     workers: int | None = None,
     moves: str | None = None,
     move_tempos: Sequence[Sequence[int]] | None = None,
+    move_ranks: int | None = None,
 ) -> Path:
     """Train, and return the path of the saved model (``out/model.zip``).
 
@@ -300,18 +307,20 @@ def train(
     moves of the support face, a step a gait period
     (:class:`~tensegrity_gym.envs.moves.MoveChoice`): ``timesteps`` and the
     hyperparameters' step counts then count those choices. ``move_tempos`` ((hold,
-    settle) control steps) lets a choice set its period's tempo too.
+    settle) control steps) lets a choice set its period's tempo too; ``move_ranks``
+    limits it to the gait's first ranks (1: the tempo alone).
     """
     if workers is not None and ray_address is None:
         raise ValueError("workers are Ray actors: give the cluster's address (--ray)")
     config = _checked_config(
         env_id, algo, estimator, timesteps, seed, n_envs, config_file, hyperparams, env_kwargs
     )
-    if move_tempos is not None and moves is None:
-        raise ValueError("train: --move-tempos sets the tempos of --moves: give --moves too")
+    if (move_tempos is not None or move_ranks is not None) and moves is None:
+        raise ValueError("train: --move-tempos and --move-ranks set the choice of --moves: "
+                         "give --moves too")  # fmt: skip
     if moves is not None:
         tempos = None if move_tempos is None else [list(t) for t in move_tempos]
-        config = replace(config, moves=moves, move_tempos=tempos)
+        config = replace(config, moves=moves, move_tempos=tempos, move_ranks=move_ranks)
         check_moves(config)
         if config.hyperparams.get("use_sde"):  # the shipped configs' continuous exploration
             log.info("--moves: gSDE explores continuous actions only; off for this run")
@@ -417,7 +426,7 @@ def check_moves(config: TrainConfig) -> None:
         raise ValueError("train: --moves picks the gait's own moves; leave out --residual-gait")
     env = gym.make(config.env_id, estimator="oracle")
     try:
-        MoveChoice(env, gait=str(config.moves), tempos=config.move_tempos)
+        MoveChoice(env, str(config.moves), config.move_tempos, config.move_ranks)
     except (ValueError, KeyError) as err:
         raise ValueError(f"train: --moves {config.moves}: {err}") from None
     finally:
@@ -441,7 +450,7 @@ def _run(config: TrainConfig, out: Path, options: RunOptions, workers: int | Non
     torch.set_num_threads(1)  # small networks: threads only contend with the env workers
     venv = make_training_env(config.env_id, config.n_envs, config.seed, config.env_kwargs,
                              out / "monitor", workers, config.moves,
-                             config.move_tempos)  # fmt: skip
+                             config.move_tempos, config.move_ranks)  # fmt: skip
     venv = _normalized(venv, params, options.start)
     start = options.start
     model = _make_model(config, params, venv, out) if start is None else _load_model(

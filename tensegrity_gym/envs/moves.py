@@ -16,8 +16,10 @@ than the model says, from the estimated state can do better. The ranks make the 
 policy's natural start: a bias on rank 0's logit.
 
 With ``tempos`` the action also sets the period's tempo, its (hold, settle) control
-steps: action ``a`` takes rank ``a % most`` at tempo ``a // most`` of the gait's own
-(0) followed by those given; a step is then that period. A flip ends well before the
+steps: action ``a`` takes rank ``a % ranks`` at tempo ``a // ranks`` of the gait's own
+(0) followed by those given; a step is then that period. ``ranks`` (default: the most
+entries a face has) limits the choice to the gait's first ranks: 1 leaves the move to
+the gait, the policy setting the tempo alone. A flip ends well before the
 gait's 35 steps on most faces, and a shorter period changes the flip itself: from a
 given state some moves go further, faster, at one tempo, others at another, which the
 gait's table (measured at its own tempo, from rest) cannot say. Action 0 is the gait,
@@ -51,6 +53,7 @@ __all__ = [
     "MOVE_FEATURES",
     "MoveChoice",
     "MovePolicy",
+    "check_ranks",
     "check_tempos",
     "entry_of_rank",
     "move_features",
@@ -103,13 +106,28 @@ def check_tempos(gait: FaceGait, tempos: Sequence[Sequence[int]] | None) -> tupl
     return tuple(checked)
 
 
+def check_ranks(gait: FaceGait, ranks: int | None) -> int:
+    """How many of ``gait``'s ranks a choice picks among: ``ranks``, 1 to the most
+    entries a face has, or (None) that most; ValueError in one line otherwise."""
+    if ranks is None:
+        return gait.most_moves
+    if (
+        isinstance(ranks, bool)
+        or not isinstance(ranks, (int, np.integer))
+        or not (1 <= ranks <= gait.most_moves)
+    ):
+        raise ValueError(f"ranks must be a whole number from 1 to {gait.most_moves} (the most "
+                         f"entries a face of the gait has), got {ranks!r}")  # fmt: skip
+    return int(ranks)
+
+
 def period_choice(
-    order: NDArray[np.intp], action: int, most: int, tempos: Sequence[Tempo]
+    order: NDArray[np.intp], action: int, ranks: int, tempos: Sequence[Tempo]
 ) -> PeriodChoice:
     """The face's entry and the period's tempo that ``action`` names: rank
-    ``action % most`` in ``order`` (:func:`ranked_moves`), tempo ``action // most`` of
+    ``action % ranks`` in ``order`` (:func:`ranked_moves`), tempo ``action // ranks`` of
     the gait's own (0, None) followed by ``tempos``."""
-    tempo_index, rank = divmod(int(action), most)
+    tempo_index, rank = divmod(int(action), ranks)
     return entry_of_rank(order, rank), (None, *tempos)[tempo_index]
 
 
@@ -152,7 +170,7 @@ class MovePolicy:
             the period under way and the moves stalled).
         pick: the trained policy, (o + 4 * most,) observation to an action of
             :class:`MoveChoice` (a rank, and with ``tempos`` a tempo).
-        tempos: the tempos it was trained with (:class:`MoveChoice`'s ``tempos``).
+        tempos, ranks: what it was trained with (:class:`MoveChoice`'s).
     """
 
     def __init__(
@@ -160,15 +178,17 @@ class MovePolicy:
         gait: FaceGait,
         pick: Callable[[NDArray[np.float32]], int],
         tempos: Sequence[Sequence[int]] | None = None,
+        ranks: int | None = None,
     ) -> None:
         self.gait, self.pick = gait, pick
         self.most = gait.most_moves
         self.tempos = check_tempos(gait, tempos)
+        self.ranks = check_ranks(gait, ranks)
         gait.chooser = self._choose
 
     def _choose(self, observation: NDArray[np.float32]) -> PeriodChoice:
         seen, order = observe_moves(self.gait, observation, self.most)
-        return period_choice(order, self.pick(seen), self.most, self.tempos)
+        return period_choice(order, self.pick(seen), self.ranks, self.tempos)
 
     def __call__(self, observation: NDArray[np.float32]) -> NDArray[np.float32]:
         """The command for this control step, (m,) in [-1, 1]."""
@@ -191,6 +211,8 @@ class MoveChoice(
         gait: the robot's steering gait's name (a gait with several entries a face).
         tempos: (hold, settle) control steps a period may also take, beside the gait's
             own (see the module's docstring); None: the gait's own alone.
+        ranks: how many of the gait's ranks a choice picks among, 1 to the most any
+            face has (the default, None); 1: the gait's own move, the tempo chosen.
     """
 
     def __init__(
@@ -198,9 +220,10 @@ class MoveChoice(
         env: gym.Env[Any, Any],
         gait: str = "steer",
         tempos: Sequence[Sequence[int]] | None = None,
+        ranks: int | None = None,
     ) -> None:
         # gym.make can remake it
-        gym.utils.RecordConstructorArgs.__init__(self, gait=gait, tempos=tempos)
+        gym.utils.RecordConstructorArgs.__init__(self, gait=gait, tempos=tempos, ranks=ranks)
         gym.Wrapper.__init__(self, env)
         inner: TensegrityEnv = env.unwrapped  # type: ignore[assignment]
         if getattr(inner, "action_base", None) is not None:
@@ -214,7 +237,8 @@ class MoveChoice(
             )
         self.most = self.gait.most_moves
         self.tempos = check_tempos(self.gait, tempos)
-        self.action_space = spaces.Discrete(self.most * (1 + len(self.tempos)))
+        self.ranks = check_ranks(self.gait, ranks)
+        self.action_space = spaces.Discrete(self.ranks * (1 + len(self.tempos)))
         base = env.observation_space
         assert isinstance(base, spaces.Box)
         low = np.concatenate([base.low, np.repeat([-_MOST_PROGRESS, 0, 0, 0], self.most)])
@@ -246,7 +270,7 @@ class MoveChoice(
         if self._last is None:
             raise RuntimeError("MoveChoice: call reset() before step()")
         observation, order = self._last, self._order
-        entry, tempo = period_choice(order, int(action), self.most, self.tempos)
+        entry, tempo = period_choice(order, int(action), self.ranks, self.tempos)
         self.gait.begin(observation, entry, tempo)
         total, steps = 0.0, 0
         terminated = truncated = False

@@ -149,7 +149,8 @@ def test_bad_config_keys_ids_estimators_and_algorithms_fail_with_the_choices(
         (["--hyperparams", "gamma:0.9.9"], "--hyperparams gamma: '0.9.9' is not a Python literal"),
         (["--moves", "steer", "--algo", "sac"], "sac cannot take (a discrete action)"),
         (["--moves", "steer", "--residual-gait", "0.5"], "leave out --residual-gait"),
-        (["--move-tempos", "15/0"], "--move-tempos sets the tempos of --moves: give --moves"),
+        (["--move-tempos", "15/0"], "--move-ranks set the choice of --moves: give --moves"),
+        (["--moves", "steer", "--move-ranks", "9"], "ranks must be a whole number from 1 to"),
         (["--moves", "steer", "--move-tempos", "15-0"], "must be HOLD/SETTLE control steps"),
         (["--moves", "steer", "--move-tempos", "5/0"], "tempo [5, 0]: a tempo is (hold, settle)"),
         (
@@ -214,10 +215,11 @@ def test_a_policy_of_moves_trains_and_evaluates_through_the_gait(tmp_path: Path)
           config_file=_tiny_config(tmp_path, use_sde=True, sde_sample_freq=8, n_steps=16,
                                    batch_size=16),
           env_kwargs={"max_episode_steps": 140}, moves="steer",
-          move_tempos=[(25, 10)])  # fmt: skip
+          move_tempos=[(25, 10)], move_ranks=2)  # fmt: skip
     config = yaml.safe_load((out / "config.yaml").read_text())
     assert config["moves"] == "steer" and config["completed_timesteps"] == 16
     assert config["move_tempos"] == [[25, 10]]  # the gait's own again: same periods
+    assert config["move_ranks"] == 2
     assert config["hyperparams"]["use_sde"] is False  # gSDE is for continuous actions
     # The Monitor, beneath the choice, counts control steps: four periods of 35.
     log = next((out / "monitor").glob("*.monitor.csv"))

@@ -8,7 +8,13 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import tensegrity_gym  # noqa: F401  (registers the ids)
-from tensegrity_gym.envs.moves import MOVE_FEATURES, MoveChoice, MovePolicy
+from tensegrity_gym.envs.moves import (
+    MOVE_FEATURES,
+    MoveChoice,
+    MovePolicy,
+    check_ranks,
+    check_tempos,
+)
 from tensegrity_gym.tasks.gaits import FaceGait
 
 GOTO = "tensegrity_gym/ThreeBarGoTo-v0"
@@ -86,9 +92,16 @@ def test_a_tempo_sets_the_periods_length_and_bad_tempos_are_refused() -> None:
     moved.reset(seed=2)
     assert moved.step(moved.most)[4]["period_steps"] == sum(SHORT)
     assert moved.step(0)[4]["period_steps"] == moved.gait.period_steps == 35
+    tempo_only = MoveChoice(gym.make(GOTO, estimator="oracle"), tempos=[SHORT], ranks=1)
+    assert tempo_only.action_space.n == 2  # the gait's move, at its tempo or the short one
+    tempo_only.reset(seed=2)
+    assert tempo_only.step(1)[4]["period_steps"] == sum(SHORT)
+    for ranks in (0, moved.most + 1, 1.5):
+        with pytest.raises(ValueError, match="ranks must be a whole number from 1 to"):
+            check_ranks(moved.gait, ranks)  # type: ignore[arg-type]
     for tempo in [(5, 0), (15, -1), (15,), (15.0, 2)]:  # the ramp is 11 steps
         with pytest.raises(ValueError, match=r"tempo .*\(hold, settle\) control steps"):
-            MoveChoice(gym.make(GOTO, estimator="oracle"), tempos=[tempo])
+            check_tempos(moved.gait, [tempo])  # what MoveChoice and MovePolicy call
 
 
 def _second_if_open(observation: np.ndarray, most: int, period: int) -> int:
