@@ -232,6 +232,10 @@ def _with_preset(args: argparse.Namespace) -> argparse.Namespace:
         "residual_gait": args.residual_gait if args.residual_gait is not None
         else p.residual_gait,
         "env_kwargs": [*(args.env_kwargs or []), *extra],
+        "moves": args.moves or p.moves,
+        "move_tempos": args.move_tempos or (
+            None if p.move_tempos is None else [list(t) for t in p.move_tempos]),
+        "move_ranks": args.move_ranks or p.move_ranks,
     }))  # fmt: skip
 
 

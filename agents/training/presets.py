@@ -29,6 +29,13 @@ class Preset:
     residual_gait: float | None = None
     """The scale of residual actions on the robot's gait; None: absolute actions."""
     env_kwargs: dict[str, Any] = field(default_factory=dict)
+    moves: str | None = None
+    """A steering gait whose choices the policy makes (``train --moves``); None: the
+    env's own actions."""
+    move_tempos: tuple[tuple[int, int], ...] | None = None
+    """With ``moves``: the tempos beside the gait's own (``--move-tempos``)."""
+    move_ranks: int | None = None
+    """With ``moves``: the gait's ranks a choice picks among (``--move-ranks``)."""
 
 
 PRESETS: dict[str, Preset] = {
@@ -39,6 +46,17 @@ PRESETS: dict[str, Preset] = {
         1_000_000,
         0.5,
         {"base_gait": "steer"},
+    ),
+    "tempo": Preset(
+        "PPO choosing the steering gait's tempo (15/0, 15/5 or its own) each period, "
+        "the move left to the gait, for 2,048 choices "
+        "(agents/training/configs/tempo.yml; ahead of the steering gait on the 3-bar "
+        "under the UKF, docs/results/training.md)",
+        CONFIG_DIR / "tempo.yml",
+        2048,
+        moves="steer",
+        move_tempos=((15, 0), (15, 5)),
+        move_ranks=1,
     ),
 }
 """Every preset ``train --preset`` takes, by name."""

@@ -90,3 +90,20 @@ def test_the_long_preset_fills_what_the_command_line_leaves_out() -> None:
     args = _with_preset(mine)
     assert args.timesteps == 100 and dict(args.env_kwargs) == {"base_gait": "forward"}
     assert long.config.is_file()
+
+
+def test_the_tempo_preset_gives_the_tempo_choice_and_its_settings() -> None:
+    """``--preset tempo``: the steering gait's choice with the tempos and ranks of the
+    runs in docs/results/training.md, and their hyperparameters (the config's)."""
+    from pathlib import Path
+
+    from agents.training.train import load_hyperparams
+
+    parser = build_parser()
+    args = _with_preset(parser.parse_args(["train", "--preset", "tempo", "--out", "x"]))
+    assert (args.moves, args.move_tempos, args.move_ranks) == ("steer", [[15, 0], [15, 5]], 1)
+    assert args.timesteps == 2048 and args.residual_gait is None
+    params = load_hyperparams("ppo", "tensegrity_gym/ThreeBarRoll-v0", Path(args.config), {})
+    assert (params["n_steps"], params["gamma"], params["ent_coef"]) == (64, 0.9, 0.01)
+    mine = parser.parse_args(["train", "--preset", "tempo", "--out", "x", "--move-ranks", "2"])
+    assert _with_preset(mine).move_ranks == 2  # the command line wins
