@@ -58,6 +58,7 @@ def test_recorded_runs_replay_through_every_variant() -> None:
         assert 0.0 <= errors["rods_within_2cm_5deg"] <= 1.0
 
 
+@pytest.mark.slow  # SUPERball's env made, calibrated and stepped: over a minute on CI
 def test_stationary_actuation_moves_two_cables_and_not_the_robot() -> None:
     run = record_stationary_actuation("tensegrity_gym/SuperBallRoll-v0", seed=0, steps=40)
     commands = np.array([s.command for s in run.steps])

@@ -595,7 +595,11 @@ def test_the_table_runs_over_several_seeds_and_averages_every_row() -> None:
     assert table["inekf_mean_drift_percent"] == pytest.approx(np.mean(drifts), abs=0.006)
 
 
-@pytest.mark.parametrize("variant", ["renamed", "mirrored"])
+@pytest.mark.parametrize(
+    "variant",
+    # 35 s each on CI; the mirrored prism is renamed too, so it alone stays in the default run
+    [pytest.param("renamed", marks=pytest.mark.slow), "mirrored"],
+)
 def test_any_three_bar_prism_is_served_whatever_its_name_and_handedness(variant: str) -> None:
     """The registry asks for a 3-bar prism by structure, not by name: the 1.45 m robot
     under a lab's own name, and its mirror image (the prism twisted the other way),

@@ -57,6 +57,7 @@ def anchor_ranges_missing(samples: Sequence[Sample]) -> str | None:
 # ---------------------------------------------------------------------- reset waits
 
 
+@pytest.mark.slow  # 33 s on CI: resets over a lossy emulated link
 def test_resets_on_a_lossy_link_wait_until_the_ukf_can_start() -> None:
     """End to end: the env hands the UKF's ``initialisation_missing`` to the driver."""
     with EmulatorProcess("three_bar", options=LOSSY) as process:
