@@ -120,6 +120,26 @@ def run_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_moves(tr: argparse.ArgumentParser) -> None:
+    """``train``'s options of a policy that makes the steering gait's choices."""
+    tr.add_argument(
+        "--moves", default=None, metavar="GAIT",
+        help="the policy picks among the support face's moves of the robot's steering "
+        "gait GAIT (e.g. steer), a step a gait period (PPO; --timesteps then counts those "
+        "choices); default: actions are the rest-length targets",
+    )  # fmt: skip
+    tr.add_argument(
+        "--move-tempos", nargs="+", type=tempo, default=None, metavar="HOLD/SETTLE",
+        help="with --moves: a choice also sets its period's tempo, the gait's own or one "
+        "of these (hold and settle control steps, e.g. 15/0)",
+    )  # fmt: skip
+    tr.add_argument(
+        "--move-ranks", type=positive_int, default=None, metavar="K",
+        help="with --moves: a choice picks among the gait's first K ranks (1: the gait's "
+        "own move, the policy setting the tempo); default: every entry of a face",
+    )  # fmt: skip
+
+
 def add_train(tr: argparse.ArgumentParser) -> None:
     """``train``'s options: the env, the algorithm and its hyperparameters, the run."""
     from agents.training.presets import PRESETS
@@ -142,22 +162,7 @@ def add_train(tr: argparse.ArgumentParser) -> None:
         help="actions correct the robot's scripted gait, scaled by SCALE "
         "(gym.make(residual_gait=)); default: actions are the rest-length targets",
     )  # fmt: skip
-    tr.add_argument(
-        "--moves", default=None, metavar="GAIT",
-        help="the policy picks among the support face's moves of the robot's steering "
-        "gait GAIT (e.g. steer), a step a gait period (PPO; --timesteps then counts those "
-        "choices); default: actions are the rest-length targets",
-    )  # fmt: skip
-    tr.add_argument(
-        "--move-tempos", nargs="+", type=tempo, default=None, metavar="HOLD/SETTLE",
-        help="with --moves: a choice also sets its period's tempo, the gait's own or one "
-        "of these (hold and settle control steps, e.g. 15/0)",
-    )  # fmt: skip
-    tr.add_argument(
-        "--move-ranks", type=positive_int, default=None, metavar="K",
-        help="with --moves: a choice picks among the gait's first K ranks (1: the gait's "
-        "own move, the policy setting the tempo); default: every entry of a face",
-    )  # fmt: skip
+    _add_moves(tr)
     tr.add_argument(
         "--env-kwargs", type=env_kwarg, nargs="+", action="extend", default=None,
         metavar="KEY:VALUE",
