@@ -95,12 +95,11 @@ def check_tempos(gait: FaceGait, tempos: Sequence[Sequence[int]] | None) -> tupl
         if (
             len(pair) != 2
             or not all(isinstance(k, (int, np.integer)) and not isinstance(k, bool) for k in pair)
-            or pair[0] < max(1, gait.ramp_steps)
-            or pair[1] < 0
+            or not gait.runs(*pair)
         ):
             raise ValueError(
                 f"tempo {tempo!r}: a tempo is (hold, settle) control steps, whole numbers, "
-                f"the hold at least {max(1, gait.ramp_steps)} (the gait's ramp), the settle >= 0"
+                f"the hold at least {gait.least_hold} (the gait's ramp), the settle >= 0"
             )
         checked.append((int(pair[0]), int(pair[1])))
     return tuple(checked)

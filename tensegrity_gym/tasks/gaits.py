@@ -374,6 +374,17 @@ class FaceGait:
         return command.copy()
 
     @property
+    def least_hold(self) -> int:
+        """The shortest hold (control steps) a period can take: one step, and the ramp's
+        (a command must reach its target before the settle begins)."""
+        return max(1, self.ramp_steps)
+
+    def runs(self, hold: int, settle: int) -> bool:
+        """Whether a period of ``hold`` and ``settle`` control steps is one this gait can
+        run (:meth:`begin`'s ``tempo``)."""
+        return hold >= self.least_hold and settle >= 0
+
+    @property
     def period_steps(self) -> int:
         """Control steps of one period: the hold and the settle."""
         return self.hold_steps + self.settle_steps
@@ -402,9 +413,9 @@ class FaceGait:
             chosen = int(index) % len(self._choices[key])
         self._last = (key, chosen) if key == face else None
         hold, settle = (self.hold_steps, self.settle_steps) if tempo is None else tempo
-        if not (self.ramp_steps <= hold and hold >= 1 and settle >= 0):
-            raise ValueError(f"a period's tempo needs hold >= max(1, ramp {self.ramp_steps}) "
-                             f"and settle >= 0, got {tempo}")  # fmt: skip
+        if not self.runs(hold, settle):
+            raise ValueError(f"a period's tempo needs hold >= {self.least_hold} and "
+                             f"settle >= 0, got {tempo}")  # fmt: skip
         steps = (hold, settle, self.ramp_steps)
         action = self._choices[key][chosen].action
         self._period = period_commands(self._commanded, action, self.hold_action, steps)
